@@ -1,0 +1,190 @@
+"""The humanoid: its MJCF model and the index tables everything else uses.
+
+`Character` is built once from the MJCF and holds the names and index arrays of
+bodies, joints and actuators, so that clip loaders, state features and the
+simulator address the model by name, never by hard-coded offsets.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import mujoco
+import numpy as np
+
+ASSET_DIR = Path(__file__).parent / "assets"
+HUMANOID_XML = ASSET_DIR / "humanoid.xml"
+
+# Left/right counterparts; every name not listed is its own mirror.
+_MIRROR_PAIRS = [
+    ("right_hip", "left_hip"),
+    ("right_knee", "left_knee"),
+    ("right_ankle", "left_ankle"),
+    ("right_shoulder", "left_shoulder"),
+    ("right_elbow", "left_elbow"),
+    ("right_wrist", "left_wrist"),
+]
+
+
+def mirror_name(name: str) -> str:
+    for a, b in _MIRROR_PAIRS:
+        if name == a:
+            return b
+        if name == b:
+            return a
+    return name
+
+
+def build_model(
+    xml_path: str | Path = HUMANOID_XML,
+    sim_hz: float = 480.0,
+    self_collision: bool = False,
+    fixed_root: bool = False,
+    root_height: float | None = None,
+) -> mujoco.MjModel:
+    """Compile the character.
+
+    Args:
+      xml_path: the MJCF file.
+      sim_hz: physics rate; the timestep is 1 / sim_hz.
+      self_collision: let the character's own geoms collide with each other
+        (parents and children never do).
+      fixed_root: weld the root to the world (no free joint), for PD tests.
+      root_height: with fixed_root, where the root is welded.
+    """
+    if sim_hz <= 0:
+        raise ValueError(f"sim_hz must be positive, got {sim_hz}")
+    spec = mujoco.MjSpec.from_file(str(xml_path))
+    spec.option.timestep = 1.0 / sim_hz
+    root = spec.body("root")
+    if fixed_root:
+        spec.delete(spec.joint("root"))
+        if root_height is not None:
+            root.pos = [0.0, 0.0, root_height]
+    if self_collision:
+        for geom in spec.geoms:
+            if geom.name != "floor":
+                geom.conaffinity = 1
+    return spec.compile()
+
+
+@dataclass
+class Character:
+    """Names and index tables of the compiled humanoid.
+
+    Bodies are the model's bodies without the world (15). Joints are the
+    actuated joints in qpos order: ball joints take 4 qpos (a quaternion) and 3
+    dofs, hinges 1 and 1. Actions are the 28 actuator targets, in actuator order,
+    which is the dof order of the actuated joints (rotation-vector components for
+    ball joints, angles for hinges).
+    """
+
+    model: mujoco.MjModel
+    body_names: list[str]
+    joint_names: list[str]
+    joint_types: list[str]  # "ball" | "hinge"
+    joint_qpos: list[slice]
+    joint_dof: list[slice]
+    body_of_joint: np.ndarray  # [J] body index (0-based, without world) each joint drives
+    foot_geoms: np.ndarray  # geom ids allowed to touch the ground
+    foot_bodies: np.ndarray  # body indices of the feet
+    hand_bodies: np.ndarray
+    head_body: int
+    floor_geom: int
+    xml_hash: str
+    root_dofs: int = 6  # 0 when the root is welded (fixed_root=True)
+    ball_qpos: np.ndarray = field(init=False)  # [n_ball, 4] qpos indices of ball quats
+    hinge_qpos: np.ndarray = field(init=False)  # [n_hinge] qpos index of each hinge
+    ball_act: np.ndarray = field(init=False)  # [n_ball, 3] action indices
+    hinge_act: np.ndarray = field(init=False)  # [n_hinge]
+
+    def __post_init__(self) -> None:
+        balls = [i for i, t in enumerate(self.joint_types) if t == "ball"]
+        hinges = [i for i, t in enumerate(self.joint_types) if t == "hinge"]
+        self.ball_qpos = np.array([np.arange(4) + self.joint_qpos[i].start for i in balls])
+        self.hinge_qpos = np.array([self.joint_qpos[i].start for i in hinges])
+        dof0 = self.root_dofs  # the free root's dofs come first; actions skip them
+        self.ball_act = np.array([np.arange(3) + self.joint_dof[i].start - dof0 for i in balls])
+        self.hinge_act = np.array([self.joint_dof[i].start - dof0 for i in hinges])
+
+    @classmethod
+    def load(cls, xml_path: str | Path = HUMANOID_XML, **build_kwargs) -> "Character":
+        model = build_model(xml_path, **build_kwargs)
+        body_names = [model.body(i).name for i in range(1, model.nbody)]
+        joint_names, joint_types, joint_qpos, joint_dof, body_of_joint = [], [], [], [], []
+        for j in range(model.njnt):
+            jtype = int(model.jnt_type[j])
+            if jtype == mujoco.mjtJoint.mjJNT_FREE:
+                continue
+            kind = {int(mujoco.mjtJoint.mjJNT_BALL): "ball", int(mujoco.mjtJoint.mjJNT_HINGE): "hinge"}[jtype]
+            nq, nv = (4, 3) if kind == "ball" else (1, 1)
+            qa, da = model.jnt_qposadr[j], model.jnt_dofadr[j]
+            joint_names.append(model.joint(j).name)
+            joint_types.append(kind)
+            joint_qpos.append(slice(qa, qa + nq))
+            joint_dof.append(slice(da, da + nv))
+            body_of_joint.append(model.jnt_bodyid[j] - 1)
+        root_dofs = 6 if int(mujoco.mjtJoint.mjJNT_FREE) in model.jnt_type.tolist() else 0
+        _check_actuators(model, joint_names, joint_dof, root_dofs)
+        foot_names = ["right_ankle", "left_ankle"]
+        return cls(
+            model=model,
+            body_names=body_names,
+            joint_names=joint_names,
+            joint_types=joint_types,
+            joint_qpos=joint_qpos,
+            joint_dof=joint_dof,
+            body_of_joint=np.array(body_of_joint),
+            foot_geoms=np.array([model.geom(n).id for n in foot_names]),
+            foot_bodies=np.array([body_names.index(n) for n in foot_names]),
+            hand_bodies=np.array([body_names.index(n) for n in ("right_wrist", "left_wrist")]),
+            head_body=body_names.index("neck"),
+            floor_geom=model.geom("floor").id,
+            xml_hash=hashlib.sha1(Path(xml_path).read_bytes()).hexdigest()[:12],
+            root_dofs=root_dofs,
+        )
+
+    # Sizes -------------------------------------------------------------------
+    @property
+    def num_bodies(self) -> int:
+        return len(self.body_names)
+
+    @property
+    def num_actions(self) -> int:
+        return self.model.nu
+
+    @property
+    def end_effectors(self) -> np.ndarray:
+        """Hands and feet, AMP's end-effectors."""
+        return np.concatenate((self.hand_bodies, self.foot_bodies))
+
+    # Mirroring ---------------------------------------------------------------
+    def body_mirror_perm(self) -> np.ndarray:
+        """perm[i] is the body whose mirror image body i is."""
+        return np.array([self.body_names.index(mirror_name(n)) for n in self.body_names])
+
+    def joint_mirror_perm(self) -> np.ndarray:
+        return np.array([self.joint_names.index(mirror_name(n)) for n in self.joint_names])
+
+    # Conversions between actions and joint rotations -------------------------
+    def qpos_to_action(self, qpos: np.ndarray) -> np.ndarray:
+        """The PD targets [..., 28] that hold the joint rotations of qpos [..., nq]."""
+        from workers.sim import rotations as rot
+
+        action = np.zeros(qpos.shape[:-1] + (self.num_actions,))
+        action[..., self.ball_act] = rot.to_expmap(qpos[..., self.ball_qpos])
+        action[..., self.hinge_act] = qpos[..., self.hinge_qpos]
+        return action
+
+
+def _check_actuators(model: mujoco.MjModel, joint_names: list[str], joint_dof: list[slice], root_dofs: int) -> None:
+    """Actuator i must drive dof root_dofs + i, so that actions are in dof order."""
+    for i in range(model.nu):
+        jid = model.actuator_trnid[i, 0]
+        dofs = joint_dof[joint_names.index(model.joint(jid).name)]
+        axis = int(np.argmax(np.abs(model.actuator_gear[i, :3])))
+        expected = dofs.start + (axis if dofs.stop - dofs.start == 3 else 0)
+        if expected != root_dofs + i:
+            raise ValueError(f"actuator {model.actuator(i).name} drives dof {expected}, expected {root_dofs + i}")
