@@ -23,7 +23,7 @@ class KinState:
     lin_vel: np.ndarray  # [N, B, 3] body-origin linear velocities
     ang_vel: np.ndarray  # [N, B, 3] body angular velocities
 
-    def __getitem__(self, idx) -> "KinState":
+    def __getitem__(self, idx) -> KinState:
         return KinState(*(getattr(self, f)[idx] for f in self.__dataclass_fields__))
 
     def __len__(self) -> int:

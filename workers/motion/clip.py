@@ -86,7 +86,7 @@ class MotionClip:
         return {f.name: np.asarray(getattr(self, f.name)) for f in fields(self)}
 
     @classmethod
-    def from_npz_dict(cls, d) -> "MotionClip":
+    def from_npz_dict(cls, d) -> MotionClip:
         kw = {f.name: d[f.name] for f in fields(cls)}
         for key in ("name", "source"):
             kw[key] = str(kw[key])
@@ -120,7 +120,7 @@ def validate_raw(character: Character, raw: RawClip) -> None:
     off = np.abs(norms - 1.0) > QUAT_NORM_TOL
     if off.any():
         frame, k = np.argwhere(off)[0]
-        names = ["root"] + [n for n, t in zip(character.joint_names, character.joint_types) if t == "ball"]
+        names = ["root"] + [n for n, t in zip(character.joint_names, character.joint_types, strict=True) if t == "ball"]
         joint = names[k]
         raise ClipError(raw.source, f"non-unit quaternion for {joint} (norm {norms[frame, k]:.4f})", int(frame))
     n_off = int((np.abs(norms - 1.0) > 1e-3).sum())

@@ -70,7 +70,7 @@ class MotionLibrary:
         mirror: bool = False,
         cache_dir: str | Path | None = None,
         use_cache: bool = True,
-    ) -> "MotionLibrary":
+    ) -> MotionLibrary:
         """Load clips by bundled name or path, resample to fps, optionally add mirrored copies."""
         out = []
         for item in clips:

@@ -110,7 +110,7 @@ class Character:
         self.hinge_act = np.array([self.joint_dof[i].start - dof0 for i in hinges])
 
     @classmethod
-    def load(cls, xml_path: str | Path = HUMANOID_XML, **build_kwargs) -> "Character":
+    def load(cls, xml_path: str | Path = HUMANOID_XML, **build_kwargs) -> Character:
         model = build_model(xml_path, **build_kwargs)
         body_names = [model.body(i).name for i in range(1, model.nbody)]
         joint_names, joint_types, joint_qpos, joint_dof, body_of_joint = [], [], [], [], []

@@ -95,7 +95,9 @@ class BatchedSim:
         self.model.opt.timestep = 1.0 / self.config.sim_hz
         lib_dt = float(np.mean(library.dt))
         if abs(lib_dt * self.config.control_hz - 1.0) > 0.02:
-            raise ValueError(f"library sampled at {1 / lib_dt:.2f} Hz, simulator controls at {self.config.control_hz} Hz")
+            raise ValueError(
+                f"library sampled at {1 / lib_dt:.2f} Hz, simulator controls at {self.config.control_hz} Hz"
+            )
         self.num_envs = num_envs
         self.rng = np.random.default_rng(seed)
         self.datas = [mujoco.MjData(self.model) for _ in range(num_envs)]

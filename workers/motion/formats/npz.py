@@ -44,6 +44,4 @@ def load(character: Character, path: str | Path, name: str | None = None) -> Raw
 
 def save(character: Character, raw: RawClip, path: str | Path, fps: float | None = None) -> None:
     fps = fps or 1.0 / float(np.mean(np.diff(raw.times)))
-    np.savez_compressed(
-        path, qpos=raw.qpos, fps=fps, loop=raw.loop, joint_names=np.array(character.joint_names)
-    )
+    np.savez_compressed(path, qpos=raw.qpos, fps=fps, loop=raw.loop, joint_names=np.array(character.joint_names))
