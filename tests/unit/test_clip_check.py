@@ -90,3 +90,14 @@ def test_runs_as_a_module(tmp_path):
     )
     assert proc.returncode == 1
     assert proc.stderr.strip().endswith("frame 1: expected 44 numbers, got 12")
+
+
+def test_check_accepts_bvh(tmp_path, capsys, character):
+    from workers.motion.formats import bvh, load_raw
+
+    path = tmp_path / "walk.bvh"
+    bvh.save(character, load_raw(character, "humanoid3d_walk"), path)
+    assert main(["check", str(path), "--json"]) == 0
+    r = json.loads(capsys.readouterr().out)
+    assert r["frames"] == 39 and r["rate_hz"] == pytest.approx(30.0, abs=0.1)
+    assert -0.02 < r["lowest_foot_m"] < 0.0  # same poses as the JSON original

@@ -1,0 +1,313 @@
+"""BVH export and import with retargeting (workers.motion.formats.bvh)."""
+
+from __future__ import annotations
+
+import logging
+
+import mujoco
+import numpy as np
+import pytest
+
+from workers.motion.clip import interpolate_qpos, normalize_quats, process
+from workers.motion.errors import ClipError
+from workers.motion.formats import bvh, load_raw
+from workers.motion.formats.deepmimic import Y_TO_Z
+from workers.sim import rotations as rot
+from workers.sim.character import Character
+
+LAFAN_NAMES = {
+    "root": "Hips", "chest": "Spine", "neck": "Neck",
+    "right_shoulder": "RightArm", "right_elbow": "RightForeArm", "right_wrist": "RightHand",
+    "left_shoulder": "LeftArm", "left_elbow": "LeftForeArm", "left_wrist": "LeftHand",
+    "right_hip": "RightUpLeg", "right_knee": "RightLeg", "right_ankle": "RightFoot",
+    "left_hip": "LeftUpLeg", "left_knee": "LeftLeg", "left_ankle": "LeftFoot",
+}  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def character() -> Character:
+    return Character.load()
+
+
+@pytest.fixture(scope="module")
+def walk(character):
+    return load_raw(character, "humanoid3d_walk")
+
+
+@pytest.fixture(scope="module")
+def walk_globals(character, walk):
+    return body_globals(character, normalize_quats(character, walk.qpos))
+
+
+def body_globals(character: Character, qpos: np.ndarray) -> np.ndarray:
+    """Global body rotations [T, B, 4] by MuJoCo's forward kinematics."""
+    data = mujoco.MjData(character.model)
+    out = np.zeros((qpos.shape[0], character.num_bodies, 4))
+    for t, q in enumerate(qpos):
+        data.qpos[:] = q
+        mujoco.mj_kinematics(character.model, data)
+        out[t] = data.xquat[1:]
+    return out
+
+
+def assert_same_poses(character, expected, actual, rot_tol=1e-4, pos_tol=1e-5):
+    expected = normalize_quats(character, expected)
+    np.testing.assert_allclose(actual[:, :3], expected[:, :3], atol=pos_tol)
+    quats = np.concatenate(([np.arange(3, 7)], character.ball_qpos))
+    err = rot.angle(rot.mul(rot.conj(expected[:, quats]), rot.normalize(actual[:, quats])))
+    assert err.max() < rot_tol, f"rotation error {err.max():.3g} rad"
+    hinges = character.hinge_qpos
+    np.testing.assert_allclose(actual[:, hinges], expected[:, hinges], atol=rot_tol)
+
+
+def our_skeleton(character, names=None, rotations="Zrotation Xrotation Yrotation"):
+    """Our skeleton as a list of [name, parent, offset (z-up, m), channels, End Site offset or None]."""
+    names = names or {}
+    parent = character.model.body_parentid[1:] - 1
+    skel = []
+    for b, body in enumerate(character.body_names):
+        channels = ("Xposition Yposition Zposition " if b == 0 else "") + rotations
+        end = bvh.END_SITES.get(body) if b not in parent[1:] else None
+        offset = np.zeros(3) if b == 0 else character.model.body_pos[b + 1].copy()
+        skel.append([names.get(body, body), int(parent[b]) if b else -1, offset, channels.split(), end])
+    return skel
+
+
+def write_bvh(path, skel, glob, root_pos, frame_time, scale=1.0, y_up=True, newline="\n"):
+    """A BVH of skeleton `skel` whose joints have the global rotations glob [T, J, 4] (z-up).
+
+    The hierarchy is written with uneven whitespace; skel must list parents before children.
+    """
+    axes = Y_TO_Z if y_up else np.eye(3)  # file -> z-up
+    dfs = []  # the channels' order is the hierarchy's
+
+    def vec(v):
+        return "  ".join(f"{x:.12g}" for x in axes.T @ np.asarray(v) * scale)
+
+    def block(j, pad):
+        name, parent, offset, channels, end = skel[j]
+        dfs.append(j)
+        out = [f"{pad}{'ROOT' if parent < 0 else 'JOINT'}\t{name} {{", f"{pad}\tOFFSET {vec(offset)} "]
+        out.append(f"{pad}\tCHANNELS  {len(channels)} " + " ".join(channels))
+        for c in (c for c in range(len(skel)) if skel[c][1] == j):
+            out += block(c, pad + "\t")
+        if end is not None:
+            out += [f"{pad}\tEnd Site", f"{pad}\t{{", f"{pad}\t\tOFFSET {vec(end)}", f"{pad}\t}}"]
+        return out + [pad + "}"]
+
+    text = ["HIERARCHY", *block(0, "")]
+    pos, cols = root_pos @ axes * scale, []
+    for j in dfs:
+        _, parent, _, channels, _ = skel[j]
+        local = glob[:, j] if parent < 0 else rot.mul(rot.conj(glob[:, parent]), glob[:, j])
+        local = np.concatenate((local[:, :1], local[:, 1:] @ axes), axis=-1)
+        order = "".join(c[0] for c in channels if c.endswith("rotation"))
+        angles = bvh.matrix_to_euler(rot.to_matrix(local), order)
+        for c in channels:
+            cols.append(pos[:, "XYZ".index(c[0])] if c.endswith("position") else angles[:, order.index(c[0])])
+    data = np.stack(cols, axis=1)
+    lines = [*text, "MOTION", f"Frames:\t{len(data)}", f"Frame Time: {float(frame_time)!r}"]
+    lines += ["  ".join(f"{x:.12g}" for x in row) + " " for row in data]
+    path.write_bytes((newline.join(lines) + newline).encode())
+
+
+# ----------------------------------------------------------------------------
+# Euler angles
+# ----------------------------------------------------------------------------
+@pytest.mark.parametrize("order", ["XYZ", "XZY", "YXZ", "YZX", "ZXY", "ZYX"])
+def test_euler_angles_follow_bvh_convention(order):
+    rng = np.random.default_rng(0)
+    angles = rng.uniform(-180, 180, (64, 3))
+    angles[:4, 1] = [90, -90, 89.9999, -90]  # gimbal lock
+    elementary = {
+        "X": lambda c, s: [[1, 0, 0], [0, c, -s], [0, s, c]],
+        "Y": lambda c, s: [[c, 0, s], [0, 1, 0], [-s, 0, c]],
+        "Z": lambda c, s: [[c, -s, 0], [s, c, 0], [0, 0, 1]],
+    }
+    expected = np.zeros((len(angles), 3, 3))
+    for t, row in enumerate(np.deg2rad(angles)):
+        m = np.eye(3)
+        for axis, a in zip(order, row, strict=True):
+            m = m @ np.array(elementary[axis](np.cos(a), np.sin(a)))
+        expected[t] = m
+    np.testing.assert_allclose(bvh.euler_to_matrix(angles, order), expected, atol=1e-12)
+    back = bvh.matrix_to_euler(expected, order)
+    assert np.all(np.abs(back[:, 1]) <= 90 + 1e-9)
+    np.testing.assert_allclose(bvh.euler_to_matrix(back, order), expected, atol=1e-9)
+
+
+# ----------------------------------------------------------------------------
+# Round trips through our own skeleton
+# ----------------------------------------------------------------------------
+@pytest.mark.parametrize("clip", ["humanoid3d_walk", "humanoid3d_run"])
+def test_save_then_load_gives_the_same_clip(character, tmp_path, clip):
+    raw = load_raw(character, clip)
+    path = tmp_path / f"{clip}.bvh"
+    bvh.save(character, raw, path)
+    text = path.read_text()
+    assert text.startswith("HIERARCHY\nROOT root\n") and "JOINT left_ankle" in text and "End Site" in text
+    back = load_raw(character, path)  # dispatches on the suffix
+    assert back.name == clip and back.source == str(path) and not back.loop
+    assert_same_poses(character, raw.qpos, back.qpos)
+    np.testing.assert_allclose(back.times, raw.times, rtol=0, atol=1e-9)
+
+
+def test_round_trip_body_positions_agree(character, walk, tmp_path):
+    path = tmp_path / "walk.bvh"
+    bvh.save(character, walk, path)
+    back = bvh.load(character, path, loop=True)
+    assert back.loop
+    a, b = process(character, walk, 30), process(character, back, 30)
+    assert a.xpos.shape == b.xpos.shape
+    np.testing.assert_allclose(b.xpos, a.xpos, atol=1e-4)
+
+
+def test_scale_and_resampling(character, walk, tmp_path):
+    path = tmp_path / "walk.bvh"
+    bvh.save(character, walk, path, fps=60)
+    guessed = bvh.load(character, path)
+    explicit = bvh.load(character, path, scale=0.01)
+    assert len(guessed.times) == int(np.floor(walk.duration * 60 + 1e-6)) + 1
+    np.testing.assert_allclose(np.diff(guessed.times), 1 / 60)
+    np.testing.assert_allclose(guessed.qpos, explicit.qpos)
+    assert_same_poses(character, interpolate_qpos(character, walk, guessed.times), guessed.qpos)
+    as_metres = bvh.load(character, path, scale=1.0)
+    np.testing.assert_allclose(as_metres.qpos[:, :3], 100 * guessed.qpos[:, :3])
+
+
+def test_unmapped_joint_keeps_identity_with_a_warning(character, walk, tmp_path, caplog):
+    path = tmp_path / "walk.bvh"
+    bvh.save(character, walk, path)
+    mapping = {n: n for n in character.body_names if n != "left_elbow"}
+    with caplog.at_level(logging.WARNING, logger=bvh.__name__):
+        back = bvh.load(character, path, joint_map=mapping)
+    assert "left_elbow" in caplog.text
+    elbow = character.joint_qpos[character.joint_names.index("left_elbow")]
+    assert np.all(back.qpos[:, elbow] == 0.0)
+    expected = walk.qpos.copy()
+    expected[:, elbow] = 0.0
+    assert_same_poses(character, expected, back.qpos)
+
+
+# ----------------------------------------------------------------------------
+# Files from other skeletons
+# ----------------------------------------------------------------------------
+def test_renamed_skeleton_other_channel_order_in_centimetres(character, walk, walk_globals, tmp_path):
+    """LaFAN1-style names, extra unmapped joints, ZXY root positions and YXZ/XZY rotations, cm, CRLF."""
+    skel = our_skeleton(character, LAFAN_NAMES, "Yrotation Xrotation Zrotation")
+    skel[0][2] = walk.qpos[0, :3]  # a root OFFSET, which position channels override
+    skel[0][3] = "Zposition Xposition Yposition Yrotation Xrotation Zrotation".split()
+    glob = walk_globals.copy()
+    # Spine1 between Spine and Neck, with a rotation of its own; Neck's local rotation makes up for it.
+    neck = character.body_names.index("neck")
+    half = skel[neck][2] / 2
+    skel.append(["Spine1", 1, half, "Xrotation Zrotation Yrotation".split(), None])
+    skel[neck][1:3] = [len(skel) - 1, half]
+    twist = rot.from_expmap(np.array([0.3, -0.2, 0.5]))
+    extra = [rot.mul(glob[:, 1], twist)]
+    # Head under Neck, also a default name for our neck: Neck comes first, so Head's rotation is ignored.
+    skel.append(["Head", neck, np.array(bvh.END_SITES["neck"]), skel[neck][3], (0.0, 0.0, 0.1)])
+    skel[neck][4] = None
+    extra.append(rot.mul(twist, glob[:, neck]))
+    limbs = [b for b in range(3, character.num_bodies) if b != neck]
+    order = [0, 1, len(skel) - 2, neck, len(skel) - 1, *limbs]
+    remap = {old: new for new, old in enumerate(order)}
+    skel = [[s[0], remap.get(s[1], -1), *s[2:]] for s in (skel[i] for i in order)]
+    glob = np.concatenate((glob, np.stack(extra, axis=1)), axis=1)[:, order]
+    path = tmp_path / "lafan_style.bvh"
+    write_bvh(path, skel, glob, walk.qpos[:, :3], walk.times[1], scale=100.0, newline="\r\n")
+    back = bvh.load(character, path)
+    assert_same_poses(character, walk.qpos, back.qpos)
+    np.testing.assert_allclose(back.times, walk.times, rtol=0, atol=1e-9)
+
+
+@pytest.mark.parametrize(("y_up", "yaw"), [(True, -np.pi / 2), (False, np.pi)])
+def test_source_facing_another_way(character, walk, walk_globals, tmp_path, y_up, yaw):
+    """A source whose rest pose faces -y or -x: the facing correction undoes the turn."""
+    turn = rot.from_expmap(np.array([0.0, 0.0, yaw]))
+    skel = our_skeleton(character)
+    for s in skel:
+        s[2] = rot.rotate(turn, s[2])
+        s[4] = None if s[4] is None else rot.rotate(turn, np.asarray(s[4]))
+    glob = rot.mul(walk_globals, rot.conj(turn))
+    path = tmp_path / "turned.bvh"
+    write_bvh(path, skel, glob, walk.qpos[:, :3], walk.times[1], y_up=y_up)
+    back = bvh.load(character, path, up="y" if y_up else "z")
+    assert_same_poses(character, walk.qpos, back.qpos)
+
+
+def test_t_pose_source_is_retargeted(character, walk, walk_globals, tmp_path):
+    """Arms horizontal at rest: our arm pose is the source's composed with a quarter turn about x."""
+    skel = our_skeleton(character)
+    glob = walk_globals.copy()
+    for side, sign in (("left", 1.0), ("right", -1.0)):
+        # C takes our rest arm (down, -z) to the source's (sideways, +-y): a quarter turn about x.
+        corr = rot.from_expmap(np.array([sign * np.pi / 2, 0.0, 0.0]))
+        for body in ("shoulder", "elbow", "wrist"):
+            b = character.body_names.index(f"{side}_{body}")
+            length = np.linalg.norm(skel[b][2]) if body != "shoulder" else None
+            if length is not None:
+                skel[b][2] = np.array([0.0, sign * length, 0.0])
+            if skel[b][4] is not None:
+                skel[b][4] = (0.0, sign * np.linalg.norm(skel[b][4]), 0.0)
+            glob[:, b] = rot.mul(walk_globals[:, b], rot.conj(corr))
+    path = tmp_path / "t_pose.bvh"
+    write_bvh(path, skel, glob, walk.qpos[:, :3], walk.times[1])
+    back = bvh.load(character, path)
+    assert_same_poses(character, walk.qpos, back.qpos, rot_tol=1e-3)
+
+
+# ----------------------------------------------------------------------------
+# Bad files
+# ----------------------------------------------------------------------------
+def _edit_frame(frame, edit):
+    def apply(text):
+        lines = text.splitlines()
+        first = next(i for i, line in enumerate(lines) if line.startswith("Frame Time")) + 1
+        lines[first + frame] = edit(lines[first + frame].split())
+        return "\n".join(lines) + "\n"
+
+    return apply
+
+
+BAD_FILES = {
+    "no_hierarchy": (lambda t: t.replace("HIERARCHY\n", ""), "no HIERARCHY", None),
+    "no_motion": (lambda t: t[: t.index("MOTION")], "no MOTION", None),
+    "short_frame": (_edit_frame(3, lambda v: " ".join(v[:-1])), "channel count", 3),
+    "long_frame": (_edit_frame(0, lambda v: " ".join(v + ["1"])), "channel count", 0),
+    "non_numeric": (_edit_frame(2, lambda v: " ".join(["abc"] + v[1:])), "non-numeric", 2),
+    "nan": (_edit_frame(5, lambda v: " ".join(v[:4] + ["nan"] + v[5:])), "non-finite", 5),
+    "zero_frames": (lambda t: t[: t.index("Frames:")] + "Frames: 0\nFrame Time: 0.1\n", "no frames", None),
+    "truncated": (lambda t: "\n".join(t.splitlines()[:-2]) + "\n", "declares", 37),
+    "bad_channel": (lambda t: t.replace("Zrotation", "Wrotation", 1), "CHANNELS", None),
+    "bad_offset": (lambda t: t.replace("OFFSET 0 0 0", "OFFSET 0 zero 0", 1), "OFFSET", None),
+    "unclosed": (lambda t: t.replace("}\nMOTION", "MOTION"), "not closed", None),
+    "bad_frame_time": (lambda t: t.replace("Frame Time:", "Frame Time: 0 #"), "Frame Time", None),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD_FILES))
+def test_bad_file_names_file_and_frame(character, walk, tmp_path, case):
+    edit, message, frame = BAD_FILES[case]
+    good = tmp_path / "good.bvh"
+    bvh.save(character, walk, good)
+    path = tmp_path / f"{case}.bvh"
+    path.write_text(edit(good.read_text()))
+    with pytest.raises(ClipError) as info:
+        bvh.load(character, path)
+    text = str(info.value)
+    assert path.name in text and message in text, text
+    assert info.value.frame == frame
+    if frame is not None:
+        assert f"frame {frame}" in text
+
+
+def test_missing_root_mapping_and_unknown_target(character, walk, tmp_path):
+    path = tmp_path / "walk.bvh"
+    bvh.save(character, walk, path)
+    with pytest.raises(ClipError, match="walk.bvh.*root"):
+        bvh.load(character, path, joint_map={"chest": "chest"})
+    with pytest.raises(ClipError, match="walk.bvh.*pelvis"):
+        bvh.load(character, path, joint_map={"root": "pelvis"})
+    with pytest.raises(ClipError, match="nowhere.bvh"):
+        bvh.load(character, tmp_path / "nowhere.bvh")
