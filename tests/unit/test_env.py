@@ -22,7 +22,7 @@ def test_step_shapes_and_reference(character, walk_run):
     np.testing.assert_array_equal(sim.steps, 1)
     # The reference advanced one frame and the character followed it closely.
     np.testing.assert_allclose(r.ref_state, walk_run.features(sim.clip_id, sim.start_frame + 1), atol=1e-5)
-    err = np.linalg.norm(r.kin.xpos - r.ref_kin.xpos, axis=-1).max()
+    err = np.linalg.norm(r.kin.xpos - sim.reference_state().xpos, axis=-1).max()
     assert err < 0.1
     with pytest.raises(ValueError, match="actions must be"):
         sim.step(np.zeros((3, 28)))

@@ -16,7 +16,7 @@ def sim_states(character, walk_run):
     ref = sim.reference_state()
     for _ in range(5):
         r = sim.step(character.qpos_to_action(ref.qpos) + rng.normal(0, 0.2, (8, 28)))
-        ref = r.ref_kin
+        ref = sim.reference_state()
     return r.kin
 
 

@@ -98,6 +98,8 @@ def test_cyclic_clip_continues_across_the_loop(walk_run):
     for _ in range(10):
         manual = transform_state(manual, np.array([clip.cycle_yaw]), clip.cycle_shift[None])
     np.testing.assert_allclose(far.xpos, manual.xpos, atol=1e-9)
+    head = walk_run.character.head_body
+    np.testing.assert_allclose(walk_run.body_positions([cid], [10 * n], head), far.xpos[:, head], atol=1e-12)
 
 
 def test_one_shot_clip_clamps_and_ends(character, clip_cache):

@@ -104,6 +104,17 @@ class MotionLibrary:
             s = transform_state(s, yaw, shift)
         return s
 
+    def body_positions(self, clip_ids: np.ndarray, frames: np.ndarray, body: int) -> np.ndarray:
+        """World position [N, 3] of one body at the given frames: `state(...).xpos[:, body]`, cheaply."""
+        clip_ids = np.asarray(clip_ids, dtype=int)
+        rows, cycles = self._rows(clip_ids, np.asarray(frames, dtype=int))
+        pos = self._xpos[rows, body]
+        if np.any(cycles):
+            yaw, shift = self._cycle_power(clip_ids, cycles)
+            c, s = np.cos(yaw), np.sin(yaw)
+            pos = np.stack((c * pos[:, 0] - s * pos[:, 1], s * pos[:, 0] + c * pos[:, 1], pos[:, 2]), -1) + shift
+        return pos
+
     def features(self, clip_ids: np.ndarray, frames: np.ndarray) -> np.ndarray:
         """The state features s [N, D] of the reference at the given frames (see `state`)."""
         return self._features[self._rows(np.asarray(clip_ids, dtype=int), np.asarray(frames, dtype=int))[0]]

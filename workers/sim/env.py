@@ -64,8 +64,7 @@ class StepResult:
 
     state: np.ndarray  # [N, D] s of the simulated characters
     ref_state: np.ndarray  # [N, D] s of the reference at the same time
-    kin: KinState  # raw simulated state
-    ref_kin: KinState  # raw reference state
+    kin: KinState  # raw simulated state (the reference's: BatchedSim.reference_state())
     fell: np.ndarray  # [N] bool
     tracking_failed: np.ndarray  # [N] bool
     clip_ended: np.ndarray  # [N] bool
@@ -151,16 +150,21 @@ class BatchedSim:
         self.start_frame[env_ids] = frames
         self.steps[env_ids] = 0
         self._bad_head_steps[env_ids] = 0
-        return state_features(self.kin_state()[env_ids])
+        # The environments now hold exactly the reference state, whose s is precomputed.
+        return self.library.features(clip_ids, frames)
 
     def set_state(self, env_ids: np.ndarray, qpos: np.ndarray, qvel: np.ndarray) -> None:
         """Put environments into the given generalised state (positions and contacts computed)."""
+        ctrl = self.character.qpos_to_action(qpos)
         for row, i in enumerate(env_ids):
             d = self.datas[i]
-            mujoco.mj_resetData(self.model, d)
+            # Everything a step reads from the past: time, state, controls and the solver's
+            # warm start (zeroed so that a reset environment's future depends on its state only).
+            d.time = 0.0
             d.qpos[:] = qpos[row]
             d.qvel[:] = qvel[row]
-            d.ctrl[:] = self.character.qpos_to_action(qpos[row])
+            d.ctrl[:] = ctrl[row]
+            d.qacc_warmstart[:] = 0.0
             mujoco.mj_forward(self.model, d)
             self._gather(i, d)
 
@@ -181,9 +185,9 @@ class BatchedSim:
         self.steps += 1
         kin = self.kin_state()
         frames = self.start_frame + self.steps
-        ref_kin = self.library.state(self.clip_id, frames)
         head = self.character.head_body
-        head_err = np.linalg.norm(kin.xpos[:, head] - ref_kin.xpos[:, head], axis=-1)
+        ref_head = self.library.body_positions(self.clip_id, frames, head)
+        head_err = np.linalg.norm(kin.xpos[:, head] - ref_head, axis=-1)
         if self.config.tracking_error_m > 0:
             bad = head_err > self.config.tracking_error_m
             self._bad_head_steps = np.where(bad, self._bad_head_steps + 1, 0)
@@ -198,7 +202,6 @@ class BatchedSim:
             state=state_features(kin),
             ref_state=self.library.features(self.clip_id, frames),
             kin=kin,
-            ref_kin=ref_kin,
             fell=fell,
             tracking_failed=tracking_failed,
             clip_ended=clip_ended,
