@@ -159,3 +159,15 @@ def test_npz_format_round_trip(character, tmp_path):
     back = load_raw(character, path)
     np.testing.assert_array_equal(back.qpos, raw.qpos)
     assert back.loop and back.name == "jump"
+
+
+def test_deepmimic_format_round_trip(character, tmp_path):
+    from workers.motion.formats import deepmimic
+
+    raw = load_raw(character, "walker/turn_left0")
+    path = tmp_path / "turn.txt"
+    deepmimic.save(character, raw, path)
+    back = load_raw(character, path)
+    np.testing.assert_allclose(back.qpos, raw.qpos, atol=1e-12)
+    np.testing.assert_allclose(back.times, raw.times, atol=1e-12)
+    assert back.loop == raw.loop

@@ -14,6 +14,8 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
+from workers.sim import rotations as rot
+
 ASSET_DIR = Path(__file__).parent / "assets"
 HUMANOID_XML = ASSET_DIR / "humanoid.xml"
 
@@ -171,8 +173,6 @@ class Character:
     # Conversions between actions and joint rotations -------------------------
     def qpos_to_action(self, qpos: np.ndarray) -> np.ndarray:
         """The PD targets [..., 28] that hold the joint rotations of qpos [..., nq]."""
-        from workers.sim import rotations as rot
-
         action = np.zeros(qpos.shape[:-1] + (self.num_actions,))
         action[..., self.ball_act] = rot.to_expmap(qpos[..., self.ball_qpos])
         action[..., self.hinge_act] = qpos[..., self.hinge_qpos]
