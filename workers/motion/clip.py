@@ -115,8 +115,7 @@ def validate_raw(character: Character, raw: RawClip) -> None:
     bad = ~np.isfinite(raw.qpos).all(axis=1)
     if bad.any():
         raise ClipError(raw.source, "non-finite value (NaN or inf)", int(np.argmax(bad)))
-    quat_idx = np.concatenate(([np.arange(3, 7)], character.ball_qpos))
-    norms = np.linalg.norm(raw.qpos[:, quat_idx], axis=-1)  # [T, n_quat]
+    norms = np.linalg.norm(raw.qpos[:, _quat_indices(character)], axis=-1)  # [T, n_quat]
     off = np.abs(norms - 1.0) > QUAT_NORM_TOL
     if off.any():
         frame, k = np.argwhere(off)[0]
@@ -226,9 +225,7 @@ def process(character: Character, raw: RawClip, fps: float) -> MotionClip:
         times = np.arange(k) * dt
         yaw, shift = 0.0, np.zeros(3)
     raw = replace(raw, qpos=normalize_quats(character, raw.qpos))
-    qpos = interpolate_qpos(character, raw, times)
-    qpos[:, 3:7] = rot.normalize(qpos[:, 3:7])
-    qpos[:, character.ball_qpos] = rot.normalize(qpos[:, character.ball_qpos])
+    qpos = interpolate_qpos(character, raw, times)  # slerp keeps quaternions unit
     if raw.loop:
         next_first = transform_qpos(qpos[0], yaw, shift)
         nxt = np.concatenate((qpos[1:], next_first[None]), axis=0)

@@ -40,9 +40,9 @@ class MotionLibrary:
     def __init__(self, character: Character, clips: Sequence[MotionClip]):
         if not clips:
             raise ValueError("a motion library needs at least one clip")
-        dts = {round(c.dt, 3) for c in clips}
-        if max(c.dt for c in clips) - min(c.dt for c in clips) > 0.05 * min(c.dt for c in clips):
-            raise ValueError(f"clips sampled at different rates: {sorted(dts)}")
+        dts = [c.dt for c in clips]
+        if max(dts) - min(dts) > 0.05 * min(dts):
+            raise ValueError(f"clips sampled at different rates: {sorted({round(d, 3) for d in dts})}")
         self.character = character
         self.clips = list(clips)
         self.names = [c.name for c in clips]
