@@ -1,0 +1,53 @@
+"""Model-based task learning: a heading policy on the frozen VAE lowers its loss through the frozen world model."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+from workers.learners.task import TaskBatch, TaskConfig, TaskLearner
+from workers.models.body_state import yaw
+
+STEPS = 16  # ControlVAE's T for task learning
+
+
+def heading_batch(trajectories, n: int, rng: np.random.Generator) -> TaskBatch:
+    """Simulated start states and a constant goal per rollout: a heading within 1 rad of the current one
+    (16 steps are 0.53 s: not enough to turn around) and a speed in [0, 3] m/s."""
+    t = rng.integers(trajectories.states.shape[0], size=n)
+    env = rng.integers(trajectories.states.shape[1], size=n)
+    start = torch.as_tensor(trajectories.states[t, env])
+    heading = yaw(start[:, 0, 3:7]).numpy()
+    goal = np.stack((heading + rng.uniform(-1.0, 1.0, n), rng.uniform(0.0, 3.0, n)), axis=-1)
+    goals = np.repeat(goal[:, None], STEPS, axis=1).astype(np.float32)
+    return TaskBatch(start, torch.as_tensor(goals))
+
+
+def test_task_learner_lowers_heading_loss(trajectories, world_model, vae_runs):
+    torch.manual_seed(0)
+    rng = np.random.default_rng(0)
+    vae, _ = vae_runs("conditional")
+    config = TaskConfig(
+        task="heading",
+        hidden=(128, 128),
+        sigma=0.5,
+        w_z=1.0,
+        rollout_steps=STEPS,
+        batch_size=64,
+        lr=1e-3,
+        optimizer="adam",
+    )
+    learner = TaskLearner(vae.vae, world_model.model, 28, config)
+    evaluation = heading_batch(trajectories, 256, np.random.default_rng(123))
+    before = learner.evaluate(evaluation)
+    history = [learner.update(heading_batch(trajectories, config.batch_size, rng)) for _ in range(300)]
+    after = learner.evaluate(evaluation)
+    print({k: (round(before[k], 3), round(after[k], 3)) for k in ("task", "heading", "speed", "fall", "latent")})
+    assert all(math.isfinite(h["loss"]) for h in history)
+    # The test's VAE saw two clips for 300 updates, so its latent space offers little to steer with; the
+    # helper branch (σ = 0.5) carries most of the gain and the paper's w_z = 20 would pin μ_g to zero.
+    # Measured: task 2.26 -> 1.94, heading 0.67 -> 0.58 rad. With σ = 0.1, w_z = 20: 2.27 -> 2.17.
+    assert after["task"] < 0.9 * before["task"]
+    assert after["heading"] < 0.9 * before["heading"]

@@ -1,0 +1,219 @@
+"""Known answers for the VAE controller: KLs, the priors' posteriors, the losses, the mixture of experts."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from torch.distributions import Normal, kl_divergence
+
+from workers.learners.base import Schedule, Weights
+from workers.learners.vae import VAEBatch, VAEConfig, VAELearner
+from workers.losses.kl import gaussian_kl
+from workers.losses.vae import controlvae_loss, discounts, physicsvae_loss, pulse_loss
+from workers.models.vae import MixtureOfExperts, VAEController
+from workers.models.world_model import WorldModel
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+def test_gaussian_kl_matches_torch_distributions():
+    g = torch.Generator().manual_seed(0)
+    mq, mp = torch.randn(5, 7, generator=g), torch.randn(5, 7, generator=g)
+    lq, lp = 0.5 * torch.randn(5, 7, generator=g), 0.5 * torch.randn(5, 7, generator=g)
+    expected = kl_divergence(Normal(mq, lq.exp()), Normal(mp, lp.exp())).sum(-1)
+    torch.testing.assert_close(gaussian_kl(mq, lq, mp, lp), expected)
+    # Against the standard normal prior.
+    zero = torch.zeros(5, 7)
+    expected = kl_divergence(Normal(mq, lq.exp()), Normal(zero, 1.0)).sum(-1)
+    torch.testing.assert_close(gaussian_kl(mq, lq, zero, zero), expected)
+
+
+def test_conditional_prior_kl_is_controlvae_eq9():
+    # q = N(μ_p + μ_q, σ_p²), p = N(μ_p, σ_p²): KL = ‖μ_q‖² / (2σ_p²). With μ_q = (0.3, 0.4), σ_p = 0.3:
+    # 0.25 / 0.18 = 1.3889.
+    mu_p = torch.tensor([[1.0, -2.0]])
+    mu_q = torch.tensor([[0.3, 0.4]])
+    log_s = torch.full((1, 2), math.log(0.3))
+    kl = gaussian_kl(mu_p + mu_q, log_s, mu_p, log_s)
+    torch.testing.assert_close(kl, torch.tensor([0.25 / 0.18]))
+
+
+def test_model_conditional_posterior_kl_equals_residual_norm():
+    torch.manual_seed(0)
+    vae = VAEController(10, 4, prior="conditional", latent_dim=3, encoder_hidden=(8,), policy="mlp", policy_hidden=(8,))
+    s, s2 = torch.randn(6, 10), torch.randn(6, 10)
+    q, p = vae.encode(s, s2)
+    residual = q.mean - p.mean
+    torch.testing.assert_close(gaussian_kl(q.mean, q.log_std, p.mean, p.log_std), (residual**2).sum(-1) / 0.18)
+
+
+def test_kl_gradcheck_float64():
+    g = torch.Generator().manual_seed(1)
+    args = [torch.randn(3, 4, generator=g, dtype=torch.float64, requires_grad=True) for _ in range(4)]
+    assert torch.autograd.gradcheck(gaussian_kl, args)
+
+
+def test_prior_kinds():
+    torch.manual_seed(0)
+    s = torch.randn(4, 10)
+    for kind in ("standard_normal", "conditional", "learned"):
+        vae = VAEController(10, 4, prior=kind, latent_dim=3, encoder_hidden=(8,), policy="mlp", policy_hidden=(8,))
+        p = vae.prior_dist(s)
+        if kind == "standard_normal":
+            assert torch.equal(p.mean, torch.zeros(4, 3)) and torch.equal(p.log_std, torch.zeros(4, 3))
+        elif kind == "conditional":
+            torch.testing.assert_close(p.log_std, torch.full((4, 3), math.log(0.3)))
+        else:
+            assert (p.log_std >= -5).all() and (p.log_std <= 0.5).all()
+    with pytest.raises(ValueError, match="unknown prior type 'gaussian'"):
+        VAEController(10, 4, prior="gaussian")
+
+
+def test_mixture_of_experts_blends_parameters():
+    # The layer-by-layer output blend must equal running one network whose weights are the gate-weighted
+    # sum of the experts' weights, built explicitly per sample.
+    torch.manual_seed(0)
+    moe = MixtureOfExperts(5, 2, 3, num_experts=3, hidden=(4,), gate_hidden=(6,))
+    s, z = torch.randn(2, 5), torch.randn(2, 2)
+    out = moe(s, z)
+    g = torch.softmax(moe.gate(torch.cat((s, z), -1)), -1)
+    for n in range(2):
+        h = s[n]
+        for i, (w, b, norm) in enumerate(zip(moe.weights, moe.biases, moe.norms, strict=True)):
+            w_n = (g[n, :, None, None] * w).sum(0)
+            b_n = (g[n, :, None] * b).sum(0)
+            h = norm(torch.cat((h, z[n]))) @ w_n + b_n
+            if i < len(moe.weights) - 1:
+                h = torch.nn.functional.elu(h)
+        torch.testing.assert_close(out[n], h)
+
+
+def test_controlvae_loss_known_answer():
+    # Two steps, γ = 0.5: normalised discounts (2/3, 1/3). Rec per step: |1 − 0| · w = 2 and 4,
+    # so rec = 2·2/3 + 4·1/3 = 8/3. KL 3 and 6 → 4. Actions (1, −1): w_a1·2 + w_a2·2 = 0.2 + 0.02.
+    pred = torch.zeros(1, 2, 1)
+    ref = torch.tensor([[[1.0], [2.0]]])
+    kl = torch.tensor([[3.0, 6.0]])
+    actions = torch.tensor([[[1.0, -1.0], [1.0, -1.0]]])
+    total, terms = controlvae_loss(pred, ref, kl, actions, torch.tensor([2.0]), 0.5, 0.1, 0.1, 0.01)
+    torch.testing.assert_close(terms["rec"], torch.tensor(8 / 3))
+    torch.testing.assert_close(terms["kl"], torch.tensor(4.0))
+    torch.testing.assert_close(terms["act"], torch.tensor(0.22))
+    torch.testing.assert_close(total, torch.tensor(8 / 3 + 0.4 + 0.22))
+    torch.testing.assert_close(discounts(3, 1.0, pred), torch.full((3,), 1 / 3))
+
+
+def test_physicsvae_alpha_zero_is_behaviour_cloning():
+    a, e = torch.ones(2, 1, 3), torch.zeros(2, 1, 3)
+    s_pred, s_true = torch.zeros(2, 1, 4), torch.ones(2, 1, 4)
+    kl = torch.full((2, 1), 2.0)
+    total, terms = physicsvae_loss(a, e, s_pred, s_true, kl, alpha=0.0, beta=2.0)
+    assert float(terms["bc"]) == 3.0 and float(terms["sim"]) == 4.0
+    assert float(total) == 3.0 + 2.0 * 2.0
+    total_alpha, _ = physicsvae_loss(a, e, s_pred, s_true, kl, alpha=0.5, beta=2.0)
+    assert float(total_alpha) == float(total) + 0.5 * 4.0
+
+
+def test_pulse_regularises_consecutive_latents():
+    means = torch.tensor([[[0.0, 0.0], [1.0, 0.0], [1.0, 2.0]]])  # steps of squared length 1 and 4: mean 2.5
+    zero = torch.zeros(1, 3, 4)
+    total, terms = pulse_loss(zero, zero, means, torch.zeros(1, 3), lambda_regu=0.1, beta=1.0)
+    assert float(terms["regu"]) == 2.5
+    assert float(total) == pytest.approx(0.25)
+
+
+def small_learner(objective: str = "controlvae", prior: str = "conditional", **kw) -> VAELearner:
+    cfg = VAEConfig(
+        objective=objective,
+        prior=prior,
+        latent_dim=4,
+        encoder_hidden=(16,),
+        policy="moe",
+        num_experts=2,
+        policy_hidden=(16,),
+        gate_hidden=(8,),
+        lr=1e-3,
+        beta=Schedule(0.01),
+        **kw,
+    )
+    wm = WorldModel(15, 28, hidden=(16,))
+    return VAELearner(15, 28, cfg, world_model=wm, seed=0)
+
+
+def random_batch(walk_run, n: int = 4, steps: int = 3) -> VAEBatch:
+    import numpy as np
+
+    from workers.models.body_state import pack
+
+    frames = np.arange(n)[:, None] + np.arange(steps + 1)
+    kin = walk_run.state(np.zeros(n * (steps + 1), int), frames.ravel())
+    states = torch.as_tensor(pack(kin)).reshape(n, steps + 1, 15, 13)
+    return VAEBatch(states, states.clone(), torch.zeros(n, steps, 28))
+
+
+@pytest.mark.parametrize("objective", ["controlvae", "physicsvae", "pulse"])
+@pytest.mark.parametrize("prior", ["standard_normal", "conditional", "learned"])
+def test_every_objective_and_prior_updates(walk_run, objective, prior):
+    torch.manual_seed(0)
+    learner = small_learner(objective, prior)
+    before = {k: v.clone() for k, v in learner.get_weights().state.items()}
+    m = learner.update(random_batch(walk_run))
+    assert math.isfinite(m["loss"]) and learner.version == 1
+    after = learner.get_weights()
+    assert after.version == 1
+    assert any(not torch.equal(before[k], v) for k, v in after.state.items())
+
+
+def test_non_finite_batch_is_skipped(walk_run):
+    torch.manual_seed(0)
+    learner = small_learner()
+    learner.update(random_batch(walk_run))
+    good = learner.get_weights()
+    bad = random_batch(walk_run)
+    bad.reference[0, 2, 3, 7] = float("nan")
+    m = learner.update(bad)
+    assert m["skipped_updates"] == 1 and learner.skipped_updates == 1 and learner.version == 1
+    assert learner.get_weights() is good
+
+
+def test_state_dict_round_trip_includes_optimizer(walk_run):
+    torch.manual_seed(0)
+    a = small_learner()
+    a.update(random_batch(walk_run))
+    b = small_learner()
+    b.load_state_dict(a.state_dict())
+    b.set_world_model_weights(Weights(0, a.world_model.state_dict()))  # frozen, not part of the VAE's state
+    assert b.optimizer.state_dict()["state"], "optimizer state travels"
+    a.generator.manual_seed(5)
+    b.generator.manual_seed(5)
+    ma, mb = a.update(random_batch(walk_run)), b.update(random_batch(walk_run))
+    assert ma["loss"] == mb["loss"]
+    for k, v in a.get_weights().state.items():
+        torch.testing.assert_close(v, b.get_weights().state[k])
+
+
+@pytest.mark.parametrize(
+    ("field", "value", "message"),
+    [
+        ("prior", "uniform", "vae.prior: unknown prior type 'uniform'"),
+        ("objective", "gail", "vae.objective: unknown objective 'gail'"),
+        ("alpha", -1.0, "vae.alpha must be non-negative"),
+        ("beta", Schedule(-0.1), "vae.beta must be non-negative"),
+    ],
+)
+def test_config_errors_name_the_key(field, value, message):
+    with pytest.raises(ValueError, match=message):
+        VAEConfig(**{field: value})
+
+
+def test_controlvae_without_world_model_is_an_error():
+    with pytest.raises(ValueError, match="needs a world model"):
+        VAELearner(15, 28, VAEConfig(), world_model=None)

@@ -1,0 +1,190 @@
+"""What every learner shares: the update step with its safety checks, versioned weights, state dicts.
+
+A learner owns its networks and optimiser. `update(batch)` computes the loss
+(a pure function from `workers.losses`), takes one optimiser step and returns
+flat float metrics; the caller namespaces them (`world_model/loss`, ...).
+
+Safety:
+- A non-finite loss or gradient norm skips the step (the optimiser state is
+  untouched) and counts it in `skipped_updates`.
+- `get_weights()` never returns a non-finite tensor: when the current
+  parameters are not all finite it returns the last good weights it published,
+  or raises `NonFiniteWeightsError` if there are none.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+from torch import nn
+
+
+class NonFiniteWeightsError(RuntimeError):
+    pass
+
+
+@dataclass(frozen=True)
+class Weights:
+    """A snapshot of a learner's module state, tagged with the update count that made it."""
+
+    version: int
+    state: dict[str, torch.Tensor]
+
+
+@dataclass(frozen=True)
+class Schedule:
+    """A scalar that changes with the update count.
+
+    kind:
+      constant  - `start` throughout.
+      linear    - from `start` to `end` over `steps` updates, then `end`.
+      staircase - from `start` to `end` in equal steps, one every `every` updates,
+                  reaching `end` after `steps` updates (ControlVAE raises β this way).
+      exp       - `start` multiplied by `factor` every `every` updates, never past
+                  `end` when it is given (PhysicsVAE's learning-rate decay, 0.7 every 50 epochs).
+    """
+
+    start: float
+    end: float | None = None
+    kind: str = "constant"
+    steps: int = 1
+    every: int = 1
+    factor: float = 1.0
+
+    def __post_init__(self) -> None:
+        if self.kind not in ("constant", "linear", "staircase", "exp"):
+            raise ValueError(f"unknown schedule kind {self.kind!r}")
+        if self.steps < 1 or self.every < 1:
+            raise ValueError("schedule steps and every must be at least 1")
+
+    def __call__(self, step: int) -> float:
+        end = self.start if self.end is None else self.end
+        if self.kind == "constant":
+            return self.start
+        if self.kind == "linear":
+            return self.start + (end - self.start) * min(step / self.steps, 1.0)
+        if self.kind == "staircase":
+            stairs = max(self.steps // self.every, 1)
+            k = min(step // self.every, stairs)
+            return self.start + (end - self.start) * k / stairs
+        value = self.start * self.factor ** (step // self.every)
+        if self.end is not None:
+            value = max(value, self.end) if self.factor < 1 else min(value, self.end)
+        return value
+
+
+def all_finite(tensors: Iterable[torch.Tensor]) -> bool:
+    return all(bool(torch.isfinite(t).all()) for t in tensors if t.is_floating_point())
+
+
+def as_tensor(x: Any, dtype: torch.dtype = torch.float32) -> torch.Tensor:
+    if isinstance(x, torch.Tensor):
+        return x.to(dtype) if x.is_floating_point() else x
+    return torch.as_tensor(x, dtype=dtype)
+
+
+class Learner:
+    """Base class. Subclasses set `self.module` and `self.optimizer` and implement `loss(batch)`.
+
+    `loss` returns (total, {name: term}); terms are reported as floats under their names.
+    """
+
+    name = "learner"
+
+    def __init__(self, module: nn.Module, optimizer: torch.optim.Optimizer, grad_clip: float | None = None):
+        self.module = module
+        self.optimizer = optimizer
+        self.grad_clip = grad_clip
+        self.version = 0
+        self.skipped_updates = 0
+        self._published: Weights | None = None
+
+    # The step ----------------------------------------------------------------
+    def loss(self, batch: Any) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        raise NotImplementedError
+
+    def before_update(self, batch: Any) -> None:
+        """Hook: update input statistics, schedules, ... before the loss is computed."""
+
+    def parameters(self) -> list[nn.Parameter]:
+        return [p for p in self.module.parameters() if p.requires_grad]
+
+    def update(self, batch: Any) -> dict[str, float]:
+        self.module.train()
+        self.before_update(batch)
+        total, terms = self.loss(batch)
+        metrics = {k: float(v.detach()) if isinstance(v, torch.Tensor) else float(v) for k, v in terms.items()}
+        metrics["loss"] = float(total.detach())
+        self.optimizer.zero_grad(set_to_none=True)
+        if not math.isfinite(metrics["loss"]):
+            return self._skip(metrics)
+        total.backward()
+        params = self.parameters()
+        clip = self.grad_clip if self.grad_clip else float("inf")
+        grad_norm = float(torch.nn.utils.clip_grad_norm_(params, clip))
+        if not math.isfinite(grad_norm):
+            self.optimizer.zero_grad(set_to_none=True)
+            return self._skip(metrics)
+        self.optimizer.step()
+        self.version += 1
+        self.after_update()
+        metrics["grad_norm"] = grad_norm
+        metrics["lr"] = self.optimizer.param_groups[0]["lr"]
+        metrics["skipped_updates"] = float(self.skipped_updates)
+        return metrics
+
+    def after_update(self) -> None:
+        """Hook: schedules that depend on the update count."""
+
+    def _skip(self, metrics: dict[str, float]) -> dict[str, float]:
+        self.skipped_updates += 1
+        metrics["skipped_updates"] = float(self.skipped_updates)
+        return metrics
+
+    # Weights -----------------------------------------------------------------
+    def get_weights(self) -> Weights:
+        """The module's state (CPU copies) and its version; never non-finite."""
+        if self._published is not None and self._published.version == self.version:
+            return self._published
+        state = {k: v.detach().to("cpu", copy=True) for k, v in self.module.state_dict().items()}
+        if not all_finite(state.values()):
+            if self._published is None:
+                raise NonFiniteWeightsError(f"{self.name}: weights hold non-finite values and none were published")
+            return self._published
+        self._published = Weights(self.version, state)
+        return self._published
+
+    def set_weights(self, weights: Weights) -> None:
+        self.module.load_state_dict(weights.state)
+        self.version = weights.version
+
+    # Checkpoints -------------------------------------------------------------
+    def state_dict(self) -> dict[str, Any]:
+        """Everything needed to resume: module, optimiser, counters. Tensors and plain types only."""
+        return {
+            "module": self.module.state_dict(),
+            "optimizer": self.optimizer.state_dict(),
+            "version": self.version,
+            "skipped_updates": self.skipped_updates,
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.module.load_state_dict(state["module"])
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.version = int(state["version"])
+        self.skipped_updates = int(state["skipped_updates"])
+        self._published = None
+
+
+OPTIMIZERS = {"adam": torch.optim.Adam, "radam": torch.optim.RAdam, "adamw": torch.optim.AdamW, "sgd": torch.optim.SGD}
+
+
+def make_optimizer(name: str, params: Iterable[nn.Parameter], lr: float) -> torch.optim.Optimizer:
+    try:
+        return OPTIMIZERS[name](params, lr=lr)
+    except KeyError:
+        raise ValueError(f"unknown optimizer {name!r}; expected one of {sorted(OPTIMIZERS)}") from None

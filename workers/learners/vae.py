@@ -1,0 +1,221 @@
+"""The VAE controller learner: one class, three objectives, three prior types (see `workers.models.vae`).
+
+objective
+  controlvae  The posterior tracks a reference clip in T-step rollouts through the
+              frozen world model, starting from simulated states (ControlVAE Alg. 1).
+              batch.states[:, 0] is the start, batch.reference the clip.
+  physicsvae  Expert transitions: the decoder's action is cloned to the expert's and,
+              with α > 0, pushed through the frozen world model to match the expert's
+              next state (PhysicsVAE Eq. 1). batch.states and batch.actions are the expert's.
+  pulse       Online distillation: the student's states, the reference as the goal
+              s_g, the teacher's actions as labels (PULSE Eq. 3). batch.states,
+              batch.reference and batch.actions.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from workers.learners.base import Learner, Schedule, Weights, as_tensor, make_optimizer
+from workers.losses.kl import gaussian_kl
+from workers.losses.vae import controlvae_loss, physicsvae_loss, pulse_loss
+from workers.models import body_state
+from workers.models.vae import PRIOR_TYPES, VAEController
+from workers.models.world_model import WorldModel
+from workers.sim.features import StateLayout
+
+OBJECTIVES = ("controlvae", "physicsvae", "pulse")
+
+
+@dataclass
+class VAEConfig:
+    # Training objective: controlvae | physicsvae | pulse.
+    objective: str = "controlvae"
+    # Prior over z: standard_normal | conditional | learned.
+    prior: str = "conditional"
+    # Latent size (ControlVAE 64, PhysicsVAE 32).
+    latent_dim: int = 64
+    # Prior and posterior MLPs (ControlVAE: two of 512, ELU, state re-concatenated at each layer).
+    encoder_hidden: tuple[int, ...] = (512, 512)
+    # Policy network: moe | mlp; each expert's (or the MLP's) hidden layers, number of experts, gate layers.
+    policy: str = "moe"
+    policy_hidden: tuple[int, ...] = (512, 512, 512)
+    num_experts: int = 6
+    gate_hidden: tuple[int, ...] = (64, 64)
+    activation: str = "elu"
+    # σ_p, the fixed standard deviation of the conditional prior and its posterior (ControlVAE 0.3).
+    sigma_p: float = 0.3
+    # A fixed posterior standard deviation for the other priors; None learns it (1.0 is ControlVAE's VAE-NC).
+    posterior_std: float | None = None
+    # Clamp of learned log-stds (PULSE clamps the prior's).
+    log_std_min: float = -5.0
+    log_std_max: float = 0.5
+    # σ_π, the policy's action noise in synthetic rollouts (ControlVAE 0.05).
+    action_noise: float = 0.05
+    # Optimiser (ControlVAE: RAdam, lr 1e-5) and gradient-norm clip (0 disables).
+    optimizer: str = "radam"
+    lr: float = 1e-5
+    grad_clip: float = 1.0
+    # Trajectories per update (N_VAE 512) and their length (T_VAE 24).
+    batch_size: int = 512
+    rollout_steps: int = 24
+    # Discount of the rollout losses (ControlVAE 0.95).
+    gamma: float = 0.95
+    # β on the KL term: ControlVAE raises it from 0.01 to 0.1 every 500 epochs (8 updates each).
+    beta: Schedule = field(default_factory=lambda: Schedule(0.01, 0.1, kind="staircase", steps=40_000, every=4_000))
+    # α, PhysicsVAE's simulation-consistency weight (Table 1: 1e-4).
+    alpha: float = 1e-4
+    # λ on PULSE's latent smoothness L_regu.
+    lambda_regu: float = 0.01
+    # Action regularisation of Eq. 12: L1 and squared-L2 weights.
+    w_a1: float = 0.0
+    w_a2: float = 0.01
+    # W of Eq. 16, by part of s: body positions, 6D rotations, velocities, angular velocities, heights, root up.
+    state_weights: dict[str, float] = field(
+        default_factory=lambda: {"pos": 1.0, "rot": 1.0, "lin_vel": 0.1, "ang_vel": 0.05, "height": 1.0, "up": 1.0}
+    )
+
+    def __post_init__(self) -> None:
+        if self.objective not in OBJECTIVES:
+            raise ValueError(f"vae.objective: unknown objective {self.objective!r}; expected one of {OBJECTIVES}")
+        if self.prior not in PRIOR_TYPES:
+            raise ValueError(f"vae.prior: unknown prior type {self.prior!r}; expected one of {PRIOR_TYPES}")
+        for key in ("alpha", "lambda_regu", "w_a1", "w_a2", "action_noise"):
+            if getattr(self, key) < 0:
+                raise ValueError(f"vae.{key} must be non-negative, got {getattr(self, key)}")
+        if self.beta.start < 0 or (self.beta.end is not None and self.beta.end < 0):
+            raise ValueError("vae.beta must be non-negative")
+        if not 0 < self.gamma <= 1:
+            raise ValueError(f"vae.gamma must be in (0, 1], got {self.gamma}")
+
+
+@dataclass
+class VAEBatch:
+    """states [N, T+1, B, 13]; reference [N, T+1, B, 13] (controlvae, pulse); actions [N, T, A]
+    (the expert's for physicsvae, the teacher's for pulse)."""
+
+    states: torch.Tensor | np.ndarray
+    reference: torch.Tensor | np.ndarray | None = None
+    actions: torch.Tensor | np.ndarray | None = None
+
+
+def state_weight_vector(num_bodies: int, weights: dict[str, float]) -> torch.Tensor:
+    """W of Eq. 16 as a weight per feature [16·B + 3]."""
+    layout = StateLayout(num_bodies)
+    w = torch.zeros(layout.dim)
+    for part in ("pos", "rot", "lin_vel", "ang_vel", "height", "up"):
+        w[getattr(layout, part)] = weights[part]
+    return w
+
+
+class VAELearner(Learner):
+    name = "vae"
+
+    def __init__(
+        self,
+        num_bodies: int,
+        action_dim: int,
+        config: VAEConfig | None = None,
+        world_model: WorldModel | None = None,
+        seed: int = 0,
+    ):
+        self.config = c = config or VAEConfig()
+        state_dim = StateLayout(num_bodies).dim
+        self.vae = VAEController(
+            state_dim,
+            action_dim,
+            prior=c.prior,
+            latent_dim=c.latent_dim,
+            encoder_hidden=c.encoder_hidden,
+            policy=c.policy,
+            policy_hidden=c.policy_hidden,
+            num_experts=c.num_experts,
+            gate_hidden=c.gate_hidden,
+            act=c.activation,
+            sigma_p=c.sigma_p,
+            posterior_std=c.posterior_std,
+            log_std_range=(c.log_std_min, c.log_std_max),
+        )
+        super().__init__(self.vae, make_optimizer(c.optimizer, self.vae.parameters(), c.lr), c.grad_clip)
+        needs_model = c.objective == "controlvae" or (c.objective == "physicsvae" and c.alpha > 0)
+        if needs_model and world_model is None:
+            raise ValueError(f"the {c.objective} objective needs a world model")
+        self.world_model = world_model
+        if world_model is not None:
+            world_model.requires_grad_(False)
+            world_model.eval()
+        self.state_weights = state_weight_vector(num_bodies, c.state_weights)
+        self.generator = torch.Generator().manual_seed(seed)
+
+    def set_world_model_weights(self, weights: Weights) -> None:
+        """Load the world-model learner's published weights into the frozen copy."""
+        self.world_model.load_state_dict(weights.state)
+
+    @property
+    def beta(self) -> float:
+        return self.config.beta(self.version)
+
+    def before_update(self, batch: VAEBatch) -> None:
+        self.vae.state_norm.update(body_state.features(as_tensor(batch.states)))
+
+    def loss(self, batch: VAEBatch) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        objective = self.config.objective
+        states = as_tensor(batch.states)
+        if objective == "controlvae":
+            total, terms = self._controlvae(states, as_tensor(batch.reference))
+        elif objective == "physicsvae":
+            total, terms = self._physicsvae(states, as_tensor(batch.actions))
+        else:
+            total, terms = self._pulse(states, as_tensor(batch.reference), as_tensor(batch.actions))
+        terms["beta"] = torch.tensor(self.beta)
+        return total, terms
+
+    def _noise(self, like: torch.Tensor) -> torch.Tensor:
+        return torch.randn(like.shape, generator=self.generator) * self.config.action_noise
+
+    def _controlvae(self, states: torch.Tensor, reference: torch.Tensor):
+        c = self.config
+        ref_features = body_state.features(reference)  # [N, T+1, D]
+        bs = states[:, 0]
+        predicted, kls, actions = [], [], []
+        for t in range(reference.shape[1] - 1):
+            s = body_state.features(bs)
+            q, p = self.vae.encode(s, ref_features[:, t + 1])
+            a = self.vae.act(s, q.rsample(self.generator))
+            bs = self.world_model(bs, a + self._noise(a))
+            predicted.append(body_state.features(bs))
+            kls.append(gaussian_kl(q.mean, q.log_std, p.mean, p.log_std))
+            actions.append(a)
+        return controlvae_loss(
+            torch.stack(predicted, 1),
+            ref_features[:, 1:],
+            torch.stack(kls, 1),
+            torch.stack(actions, 1),
+            self.state_weights,
+            c.gamma,
+            self.beta,
+            c.w_a1,
+            c.w_a2,
+        )
+
+    def _physicsvae(self, states: torch.Tensor, expert_actions: torch.Tensor):
+        s = body_state.features(states)  # [N, T+1, D]
+        q, p = self.vae.encode(s[:, :-1], s[:, 1:])
+        a = self.vae.act(s[:, :-1], q.rsample(self.generator))
+        if self.config.alpha > 0:
+            predicted_next = body_state.features(self.world_model(states[:, :-1], a))
+        else:
+            predicted_next = s[:, 1:]
+        kl = gaussian_kl(q.mean, q.log_std, p.mean, p.log_std)
+        return physicsvae_loss(a, expert_actions, predicted_next, s[:, 1:], kl, self.config.alpha, self.beta)
+
+    def _pulse(self, states: torch.Tensor, reference: torch.Tensor, teacher_actions: torch.Tensor):
+        s = body_state.features(states[:, :-1])
+        goal = body_state.features(reference[:, 1:])
+        q, p = self.vae.encode(s, goal)
+        a = self.vae.act(s, q.rsample(self.generator))
+        kl = gaussian_kl(q.mean, q.log_std, p.mean, p.log_std)
+        return pulse_loss(a, teacher_actions, q.mean, kl, self.config.lambda_regu, self.beta)

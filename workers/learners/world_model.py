@@ -1,0 +1,75 @@
+"""The world-model learner: T_w-step synthetic rollouts from recorded trajectories (ControlVAE §3.3.2)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import torch
+
+from workers.learners.base import Learner, as_tensor, make_optimizer
+from workers.losses.world_model import world_model_loss
+from workers.models.world_model import WorldModel
+
+
+@dataclass
+class WorldModelConfig:
+    # Hidden layer sizes of the MLP (ControlVAE: four of 512, ELU).
+    hidden: tuple[int, ...] = (512, 512, 512, 512)
+    activation: str = "elu"
+    # How positions and rotations follow the predicted velocities: euler | semi_implicit | midpoint.
+    integrator: str = "semi_implicit"
+    # Optimiser and learning rate (ControlVAE: 2e-3 for the world model).
+    optimizer: str = "adam"
+    lr: float = 2e-3
+    # Steps of each synthetic rollout, T_w (ControlVAE: 8) and trajectories per update, N_w (512).
+    rollout_steps: int = 8
+    batch_size: int = 512
+    # Gradient-norm clip; 0 disables.
+    grad_clip: float = 1.0
+    # W' of Eq. 17: weights of the position, rotation, linear and angular velocity errors.
+    weights: dict[str, float] = field(default_factory=lambda: {"pos": 1.0, "rot": 1.0, "lin_vel": 0.2, "ang_vel": 0.05})
+
+    def __post_init__(self) -> None:
+        if self.rollout_steps < 1:
+            raise ValueError(f"world_model.rollout_steps must be at least 1, got {self.rollout_steps}")
+        if self.lr <= 0:
+            raise ValueError(f"world_model.lr must be positive, got {self.lr}")
+
+
+@dataclass
+class WorldModelBatch:
+    """Recorded trajectories: body states [N, T+1, B, 13] and the actions between them [N, T, A]."""
+
+    states: torch.Tensor
+    actions: torch.Tensor
+
+
+class WorldModelLearner(Learner):
+    name = "world_model"
+
+    def __init__(self, num_bodies: int, action_dim: int, dt: float, config: WorldModelConfig | None = None):
+        self.config = config or WorldModelConfig()
+        c = self.config
+        self.model = WorldModel(num_bodies, action_dim, c.hidden, c.activation, dt, c.integrator)
+        super().__init__(self.model, make_optimizer(c.optimizer, self.model.parameters(), c.lr), c.grad_clip)
+
+    def _tensors(self, batch: WorldModelBatch) -> tuple[torch.Tensor, torch.Tensor]:
+        states, actions = as_tensor(batch.states), as_tensor(batch.actions)
+        if states.shape[1] != actions.shape[1] + 1:
+            raise ValueError(f"states have {states.shape[1]} steps, actions {actions.shape[1]}: need T+1 and T")
+        return states, actions
+
+    def before_update(self, batch: WorldModelBatch) -> None:
+        states, actions = self._tensors(batch)
+        self.model.observe(states[:, :-1], actions, states[:, 1:])
+
+    def loss(self, batch: WorldModelBatch) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        states, actions = self._tensors(batch)
+        predicted = self.model.rollout(states[:, 0], actions)
+        return world_model_loss(predicted, states[:, 1:], self.config.weights)
+
+    @torch.no_grad()
+    def predict(self, start: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
+        """Open-loop prediction [N, T, B, 13] (eval mode, no gradient)."""
+        self.model.eval()
+        return self.model.rollout(as_tensor(start), as_tensor(actions))

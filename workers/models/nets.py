@@ -1,0 +1,122 @@
+"""Building blocks shared by every network: MLPs, input normalisation, initialisation."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+from torch import nn
+
+ACTIVATIONS: dict[str, type[nn.Module]] = {"elu": nn.ELU, "relu": nn.ReLU, "tanh": nn.Tanh, "silu": nn.SiLU}
+
+
+def activation(name: str) -> nn.Module:
+    try:
+        return ACTIVATIONS[name]()
+    except KeyError:
+        raise ValueError(f"unknown activation {name!r}; expected one of {sorted(ACTIVATIONS)}") from None
+
+
+def mlp(
+    in_dim: int,
+    hidden: Sequence[int],
+    out_dim: int,
+    act: str = "elu",
+    out_scale: float | None = None,
+) -> nn.Sequential:
+    """Linear layers with `act` between them and none after the last.
+
+    out_scale, when given, scales the last layer's initial weights (a small value
+    starts a residual or a policy head near zero) and zeroes its bias.
+    """
+    layers: list[nn.Module] = []
+    d = in_dim
+    for h in hidden:
+        layers += [nn.Linear(d, h), activation(act)]
+        d = h
+    last = nn.Linear(d, out_dim)
+    if out_scale is not None:
+        with torch.no_grad():
+            last.weight.mul_(out_scale)
+            last.bias.zero_()
+    layers.append(last)
+    return nn.Sequential(*layers)
+
+
+class ConcatMLP(nn.Module):
+    """An MLP that concatenates a conditioning input to every layer's input.
+
+    ControlVAE re-concatenates s to each layer of the prior and posterior, and z
+    to each layer of the policy's experts (with layer norm on the concatenation).
+    """
+
+    def __init__(
+        self,
+        in_dim: int,
+        cond_dim: int,
+        hidden: Sequence[int],
+        out_dim: int,
+        act: str = "elu",
+        layer_norm: bool = False,
+        out_scale: float | None = None,
+    ):
+        super().__init__()
+        dims = [in_dim, *hidden]
+        self.layers = nn.ModuleList(nn.Linear(d + cond_dim, h) for d, h in zip(dims[:-1], dims[1:], strict=True))
+        self.norms = nn.ModuleList((nn.LayerNorm(d + cond_dim) if layer_norm else nn.Identity()) for d in dims[:-1])
+        self.out = nn.Linear(dims[-1] + cond_dim, out_dim)
+        if out_scale is not None:
+            with torch.no_grad():
+                self.out.weight.mul_(out_scale)
+                self.out.bias.zero_()
+        self.act = activation(act)
+
+    def forward(self, x: torch.Tensor, cond: torch.Tensor) -> torch.Tensor:
+        for layer, norm in zip(self.layers, self.norms, strict=True):
+            x = self.act(layer(norm(torch.cat((x, cond), dim=-1))))
+        return self.out(torch.cat((x, cond), dim=-1))
+
+
+class Normalizer(nn.Module):
+    """Running mean and standard deviation of an input, applied as (x - mean) / std.
+
+    Statistics are accumulated by `update` (rows with a non-finite value are
+    ignored) until `max_count` samples have been
+    seen, then frozen, so a trained network's input scaling stops moving. They
+    live in buffers and therefore in the state dict and in published weights.
+    """
+
+    def __init__(self, dim: int, max_count: float = 1e6, eps: float = 1e-2):
+        super().__init__()
+        self.max_count = max_count
+        self.eps = eps
+        self.register_buffer("count", torch.zeros((), dtype=torch.float64))
+        self.register_buffer("mean", torch.zeros(dim, dtype=torch.float64))
+        self.register_buffer("m2", torch.zeros(dim, dtype=torch.float64))
+
+    @torch.no_grad()
+    def update(self, x: torch.Tensor) -> None:
+        if self.count >= self.max_count:
+            return
+        x = x.detach().reshape(-1, x.shape[-1]).double()
+        x = x[torch.isfinite(x).all(-1)]  # a corrupt sample must not poison the statistics for good
+        n = x.shape[0]
+        if n == 0:
+            return
+        mean_b = x.mean(0)
+        m2_b = ((x - mean_b) ** 2).sum(0)
+        total = self.count + n
+        delta = mean_b - self.mean
+        self.mean += delta * n / total
+        self.m2 += m2_b + delta**2 * self.count * n / total
+        self.count.fill_(total)
+
+    @property
+    def std(self) -> torch.Tensor:
+        var = self.m2 / self.count.clamp(min=1.0)
+        return var.sqrt().clamp(min=self.eps)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if self.count == 0:
+            return x
+        return (x - self.mean.to(x.dtype)) / self.std.to(x.dtype)

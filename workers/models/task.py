@@ -1,0 +1,57 @@
+"""The task policy on a frozen VAE controller.
+
+z = μ_p(s) + μ_g(s, g): a residual on the prior mean (ControlVAE Eq. 21, PULSE
+Eq. 4; with the standard normal prior μ_p = 0 and μ_g is PhysicsVAE's task
+encoder). The action is the frozen decoder's, plus the helper branch
+Δa = σ · tanh(H(s, z)) when σ > 0 (PhysicsVAE Eq. 2), so that no action dimension
+moves by more than σ from what the decoder would do.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+from torch import nn
+
+from workers.models.nets import Normalizer, mlp
+from workers.models.vae import VAEController
+
+
+class TaskPolicy(nn.Module):
+    def __init__(
+        self,
+        state_dim: int,
+        goal_dim: int,
+        latent_dim: int,
+        action_dim: int,
+        hidden: Sequence[int] = (256, 128),
+        helper_hidden: Sequence[int] = (128, 128),
+        sigma: float = 0.0,
+        act: str = "elu",
+    ):
+        super().__init__()
+        if sigma < 0:
+            raise ValueError(f"helper sigma must be non-negative, got {sigma}")
+        self.sigma = sigma
+        self.state_norm = Normalizer(state_dim)
+        self.encoder = mlp(state_dim + goal_dim, hidden, latent_dim, act, out_scale=0.1)
+        self.helper = mlp(state_dim + latent_dim, helper_hidden, action_dim, act, out_scale=0.1) if sigma > 0 else None
+
+    def latent_offset(self, s: torch.Tensor, goal_obs: torch.Tensor) -> torch.Tensor:
+        """μ_g(s, g) [..., Z]."""
+        return self.encoder(torch.cat((self.state_norm(s), goal_obs), dim=-1))
+
+    def helper_offset(self, s: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+        """Δa = σ · tanh(H(s, z)) [..., A]; zero without a helper branch."""
+        if self.helper is None:
+            return s.new_zeros(())
+        return self.sigma * torch.tanh(self.helper(torch.cat((self.state_norm(s), z), dim=-1)))
+
+    def forward(
+        self, controller: VAEController, s: torch.Tensor, goal_obs: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """(action [..., A], μ_g [..., Z]) for features s [..., D] and goal observations [..., G]."""
+        mu_g = self.latent_offset(s, goal_obs)
+        z = controller.prior_dist(s).mean + mu_g
+        return controller.act(s, z) + self.helper_offset(s, z), mu_g

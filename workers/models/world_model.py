@@ -1,0 +1,69 @@
+"""The world model ω(s' | s, a) (ControlVAE §3.4.2, after SuperTrack; PhysicsVAE's simulation layer).
+
+An MLP reads the features s of the current body state and the action, and
+predicts each body's change of linear and angular velocity in the heading frame;
+the new body state follows by integration (`body_state.integrate`). Inputs and
+outputs are standardised with running statistics gathered from the training data.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+from torch import nn
+
+from workers.models import body_state
+from workers.models.nets import Normalizer, mlp
+
+
+class WorldModel(nn.Module):
+    def __init__(
+        self,
+        num_bodies: int,
+        action_dim: int,
+        hidden: Sequence[int] = (512, 512, 512, 512),
+        act: str = "elu",
+        dt: float = 1.0 / 30.0,
+        integrator: str = "semi_implicit",
+    ):
+        super().__init__()
+        if integrator not in body_state.INTEGRATORS:
+            raise ValueError(f"unknown integrator {integrator!r}; expected one of {body_state.INTEGRATORS}")
+        self.num_bodies = num_bodies
+        self.action_dim = action_dim
+        self.dt = dt
+        self.integrator = integrator
+        state_dim = 16 * num_bodies + 3
+        self.state_norm = Normalizer(state_dim)
+        self.action_norm = Normalizer(action_dim)
+        self.delta_norm = Normalizer(6 * num_bodies)
+        self.net = mlp(state_dim + action_dim, hidden, 6 * num_bodies, act, out_scale=0.1)
+
+    @torch.no_grad()
+    def observe(self, bs: torch.Tensor, action: torch.Tensor, bs_next: torch.Tensor) -> None:
+        """Accumulate input and output statistics from true transitions [..., B, 13], [..., A], [..., B, 13]."""
+        self.state_norm.update(body_state.features(bs))
+        self.action_norm.update(action)
+        self.delta_norm.update(body_state.heading_velocity_delta(bs, bs_next).flatten(-2))
+
+    def delta(self, bs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        """Predicted change of velocities [..., B, 6] in the heading frame of bs [..., B, 13]."""
+        x = torch.cat((self.state_norm(body_state.features(bs)), self.action_norm(action)), dim=-1)
+        out = self.net(x)
+        if self.delta_norm.count > 0:
+            out = out * self.delta_norm.std.to(out.dtype) + self.delta_norm.mean.to(out.dtype)
+        return out.unflatten(-1, (self.num_bodies, 6))
+
+    def forward(self, bs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        """The next body state [..., B, 13]."""
+        return body_state.integrate(bs, self.delta(bs, action), self.dt, self.integrator)
+
+    def rollout(self, bs0: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
+        """Open-loop prediction [N, T, B, 13] from start states [N, B, 13] under actions [N, T, A]."""
+        out = []
+        bs = bs0
+        for t in range(actions.shape[1]):
+            bs = self(bs, actions[:, t])
+            out.append(bs)
+        return torch.stack(out, dim=1)
