@@ -1,0 +1,260 @@
+"""The AMP discriminator learner (Peng et al. 2021, Sec. 5 and 6.3; Table 4).
+
+One `update` is one optimiser step on the objective of AMP Eq. 8: a
+least-squares (or cross-entropy) classification of data against policy
+transitions plus a gradient penalty on the data samples. The policy side
+mixes the fresh batch with transitions replayed from past updates (AMP's
+discriminator replay buffer B), which keeps the discriminator from
+overfitting to the latest policy.
+
+`reward` turns the discriminator into the policy's style reward (Eq. 7).
+
+Checkpoints: `state_dict()` holds the network (with its normaliser), the
+optimiser and the counters, not the replay or its sampler; a resumed learner
+starts with an empty replay, which refills within a few updates.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+
+from workers.learners.base import Learner, all_finite, as_tensor
+from workers.losses.discriminator import (
+    check_loss_type,
+    discriminator_loss,
+    gradient_penalty,
+    logit_regularization,
+    style_reward,
+)
+from workers.models.discriminator import Discriminator
+
+GP_ON = ("data", "data_and_policy")
+
+
+@dataclass
+class DiscriminatorConfig:
+    # Hidden layer sizes of the discriminator MLP; AMP Sec. 6.2 uses (1024, 512).
+    hidden: tuple[int, ...] = (1024, 512)
+    # Hidden activation, a name from workers.models.nets.ACTIVATIONS; AMP uses ReLU.
+    activation: str = "relu"
+    # Skill classes the discriminator is conditioned on (ControlVAE Eq. 27); 0 for an unconditioned prior.
+    num_skills: int = 0
+    # 0 feeds the skill as a one-hot vector; > 0 through a learned embedding of this size.
+    skill_embed_dim: int = 0
+    # "lsgan" (AMP Eq. 6-7: targets +1/-1, reward max(0, 1 - 0.25 (D-1)²)) or "bce" (GAIL's cross-entropy).
+    loss: str = "lsgan"
+    # Gradient penalty weight w_gp of (w_gp/2)·E‖∇_φ D‖² (AMP Eq. 8, Table 4: 10; ControlVAE's w_g = 20
+    # has no ½, i.e. w_gp = 40 here). The gradient is taken w.r.t. the normalised features.
+    w_gp: float = 10.0
+    # Where the penalty applies: "data" (AMP Eq. 8) or "data_and_policy" (the two penalties summed, as in
+    # some public implementations).
+    gp_on: str = "data"
+    # Weight of w·‖W‖² on the logit layer's weights; 0 turns it off (AMP does not use it).
+    logit_reg: float = 0.0
+    # Adam's (L2) weight decay on every parameter; 0 turns it off.
+    weight_decay: float = 0.0
+    # Adam step size. AMP Table 4 uses 1e-5 with SGD (momentum 0.9); 1e-4 with Adam learns the walk/run
+    # separation of tests/learning in a few hundred steps and is the default here.
+    lr: float = 1e-4
+    # Transitions per side in one update (AMP Table 4: K = 256). The caller draws data and fresh policy
+    # minibatches of this size; `update` takes whatever it is given.
+    batch_size: int = 256
+    # Global gradient-norm clip; None for no clipping (AMP does not clip).
+    grad_clip: float | None = None
+    # Past policy transitions kept for replay (AMP Table 4: B = 1e5).
+    replay_capacity: int = 100_000
+    # Fraction of each update's policy side drawn from the replay of past updates (the rest from the fresh
+    # batch). 0 uses the fresh batch only; with an empty replay the fresh batch is used whatever this is.
+    replay_mix: float = 0.5
+
+    def __post_init__(self) -> None:
+        check_loss_type(self.loss)
+        if self.gp_on not in GP_ON:
+            raise ValueError(f"unknown gradient penalty placement gp_on={self.gp_on!r}; expected one of {GP_ON}")
+        if not 0.0 <= self.replay_mix <= 1.0:
+            raise ValueError(f"replay_mix must lie in [0, 1], got {self.replay_mix}")
+        if self.replay_capacity < 1 or self.batch_size < 1:
+            raise ValueError("replay_capacity and batch_size must be at least 1")
+        if self.w_gp < 0 or self.logit_reg < 0:
+            raise ValueError("w_gp and logit_reg must be non-negative")
+
+
+@dataclass
+class DiscriminatorBatch:
+    """Transitions (Φ(s), Φ(s')) concatenated; NumPy arrays or tensors."""
+
+    data_obs: Any  # [B, 2·obs_dim] from the reference motions
+    policy_obs: Any  # [B', 2·obs_dim] from the policy's rollouts
+    data_skill: Any = None  # [B] int skill labels, when the discriminator is skill-conditioned
+    policy_skill: Any = None  # [B'] int skill labels, when the discriminator is skill-conditioned
+
+
+class TransitionReplay:
+    """A ring buffer of past policy transitions [capacity, dim] and, optionally, their skill labels."""
+
+    def __init__(self, capacity: int, dim: int, with_skill: bool):
+        self.capacity = capacity
+        self.obs = np.empty((capacity, dim), dtype=np.float32)
+        self.skill = np.empty(capacity, dtype=np.int64) if with_skill else None
+        self.size = 0
+        self._next = 0
+
+    def __len__(self) -> int:
+        return self.size
+
+    def add(self, obs: np.ndarray, skill: np.ndarray | None = None) -> None:
+        obs = obs[-self.capacity :]
+        idx = (self._next + np.arange(len(obs))) % self.capacity
+        self.obs[idx] = obs
+        if self.skill is not None:
+            self.skill[idx] = skill[-self.capacity :]
+        self._next = (self._next + len(obs)) % self.capacity
+        self.size = min(self.size + len(obs), self.capacity)
+
+    def sample(self, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray | None]:
+        """n transitions drawn uniformly with replacement; the replay must not be empty."""
+        idx = rng.integers(0, self.size, size=n)
+        return self.obs[idx], None if self.skill is None else self.skill[idx]
+
+
+class DiscriminatorLearner(Learner):
+    """Owns the discriminator, its Adam optimiser and the replay of past policy transitions.
+
+    obs_dim: size of Φ(s) for one state (`workers.sim.features.amp_dim`); inputs are [B, 2·obs_dim].
+    seed:    seeds the network's initial weights and the replay sampler.
+    """
+
+    name = "disc"
+
+    def __init__(
+        self,
+        obs_dim: int,
+        config: DiscriminatorConfig | None = None,
+        seed: int = 0,
+        device: str | torch.device = "cpu",
+    ):
+        self.config = config = config or DiscriminatorConfig()
+        self.device = torch.device(device)
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(seed)
+            module = Discriminator(
+                obs_dim, config.hidden, config.activation, config.num_skills, config.skill_embed_dim
+            ).to(self.device)
+        optimizer = torch.optim.Adam(module.parameters(), lr=config.lr, weight_decay=config.weight_decay)
+        super().__init__(module, optimizer, config.grad_clip)
+        self.replay = TransitionReplay(config.replay_capacity, 2 * obs_dim, config.num_skills > 0)
+        self.rng = np.random.default_rng(seed)
+
+    # The step ----------------------------------------------------------------
+    def update(self, batch: DiscriminatorBatch) -> dict[str, float]:
+        """One step on `batch`, whose policy side is first mixed with replayed transitions (then stored)."""
+        metrics = super().update(self._mix_replay(batch))
+        metrics["replay_size"] = float(len(self.replay))
+        return metrics
+
+    def before_update(self, batch: DiscriminatorBatch) -> None:
+        data = self._obs(batch.data_obs)
+        if all_finite([data, self._obs(batch.policy_obs)]):  # a non-finite batch leaves the statistics alone
+            self.module.update_normalizer(data)
+
+    def loss(self, batch: DiscriminatorBatch) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        """AMP Eq. 8 on the batch as given (no replay), with diagnostics.
+
+        Terms: loss_data, loss_policy, gp (gp_data [+ gp_policy]), input_grad_norm_data
+        [input_grad_norm_policy], d_data, d_policy (mean logits), accuracy_data (D > 0),
+        accuracy_policy (D < 0), accuracy (their mean) [, logit_reg].
+        """
+        cfg = self.config
+        data_skill, policy_skill = self._skills(batch)
+        data_n = self.module.normalize(self._obs(batch.data_obs)).detach().requires_grad_(True)
+        policy_n = self.module.normalize(self._obs(batch.policy_obs)).detach()
+        penalise_policy = cfg.gp_on == "data_and_policy"
+        policy_n.requires_grad_(penalise_policy)
+        d_data = self.module.logits(data_n, data_skill)
+        d_policy = self.module.logits(policy_n, policy_skill)
+
+        total, terms = discriminator_loss(d_data, d_policy, cfg.loss)
+        gp, gp_terms = gradient_penalty(d_data, data_n, cfg.w_gp)
+        terms["gp_data"], terms["input_grad_norm_data"] = gp_terms["gp"], gp_terms["input_grad_norm"]
+        if penalise_policy:
+            gp_policy, gp_terms = gradient_penalty(d_policy, policy_n, cfg.w_gp)
+            terms["gp_policy"], terms["input_grad_norm_policy"] = gp_terms["gp"], gp_terms["input_grad_norm"]
+            gp = gp + gp_policy
+        terms["gp"] = gp
+        total = total + gp
+        if cfg.logit_reg > 0:
+            reg, reg_terms = logit_regularization(self.module.logit_layer.weight, cfg.logit_reg)
+            total = total + reg
+            terms.update(reg_terms)
+
+        acc_data = (d_data > 0).float().mean()
+        acc_policy = (d_policy < 0).float().mean()
+        terms.update(
+            d_data=d_data.mean(),
+            d_policy=d_policy.mean(),
+            accuracy_data=acc_data,
+            accuracy_policy=acc_policy,
+            accuracy=0.5 * (acc_data + acc_policy),
+        )
+        return total, terms
+
+    def evaluate(self, batch: DiscriminatorBatch) -> dict[str, float]:
+        """The loss terms on `batch` (no replay, no step, no side effect), e.g. on held-out transitions."""
+        self.module.eval()
+        total, terms = self.loss(batch)
+        metrics = {k: float(v.detach()) for k, v in terms.items()}
+        metrics["loss"] = float(total.detach())
+        return metrics
+
+    # Using the discriminator -------------------------------------------------
+    @torch.no_grad()
+    def logits(self, obs: Any, skill: Any = None) -> np.ndarray:
+        """D on raw transitions [N, 2·obs_dim] (skills [N] int) -> logits [N]."""
+        self.module.eval()
+        return self.module(self._obs(obs), self._skill(skill)).cpu().numpy()
+
+    @torch.no_grad()
+    def reward(self, obs: Any, skill: Any = None) -> np.ndarray:
+        """The style reward r_S [N] of transitions [N, 2·obs_dim] (AMP Eq. 7 for lsgan)."""
+        self.module.eval()
+        d = self.module(self._obs(obs), self._skill(skill))
+        return style_reward(d, self.config.loss)[0].cpu().numpy()
+
+    # Helpers -----------------------------------------------------------------
+    def _mix_replay(self, batch: DiscriminatorBatch) -> DiscriminatorBatch:
+        """Replace a `replay_mix` share of the policy side by replayed transitions, then store the fresh ones.
+
+        A batch holding a non-finite number is passed on untouched and not stored, so its
+        update is skipped and the replay is not poisoned.
+        """
+        if self.config.num_skills > 0 and (batch.data_skill is None or batch.policy_skill is None):
+            raise ValueError(f"{self.name}: a skill-conditioned discriminator needs data_skill and policy_skill")
+        data, policy = self._obs(batch.data_obs), self._obs(batch.policy_obs)
+        if not all_finite([data, policy]):
+            return batch
+        fresh = policy.cpu().numpy()
+        fresh_skill = None if batch.policy_skill is None else self._skill(batch.policy_skill).cpu().numpy()
+        n = len(fresh)
+        n_replay = min(round(self.config.replay_mix * n), n) if len(self.replay) else 0
+        obs, skill = fresh, fresh_skill
+        if n_replay:
+            keep = self.rng.permutation(n)[: n - n_replay]
+            old, old_skill = self.replay.sample(n_replay, self.rng)
+            obs = np.concatenate((fresh[keep], old))
+            if fresh_skill is not None:
+                skill = np.concatenate((fresh_skill[keep], old_skill))
+        self.replay.add(fresh, fresh_skill)
+        return DiscriminatorBatch(data, obs, batch.data_skill, skill)
+
+    def _skills(self, batch: DiscriminatorBatch) -> tuple[torch.Tensor | None, torch.Tensor | None]:
+        return self._skill(batch.data_skill), self._skill(batch.policy_skill)
+
+    def _obs(self, x: Any) -> torch.Tensor:
+        return as_tensor(x).to(self.device)
+
+    def _skill(self, x: Any) -> torch.Tensor | None:
+        return None if x is None else torch.as_tensor(x, dtype=torch.long, device=self.device)
