@@ -97,15 +97,6 @@ def train_world_model(data: Trajectories, updates: int, seed: int = 0, config: W
     return learner, history
 
 
-@pytest.fixture(scope="session", autouse=True)
-def one_thread():
-    """One torch thread: on a busy 2-core machine two threads can be ten times slower, not faster."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
-
-
 @pytest.fixture(scope="session")
 def world_model_run(trajectories) -> tuple[WorldModelLearner, list[dict[str, float]]]:
     """A world model trained for 300 updates and its metrics, shared by the tests (frozen after)."""

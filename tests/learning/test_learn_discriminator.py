@@ -12,7 +12,6 @@ from collections.abc import Callable
 
 import numpy as np
 import pytest
-import torch
 
 from workers.learners.discriminator import DiscriminatorBatch, DiscriminatorConfig, DiscriminatorLearner
 from workers.motion.library import MotionLibrary
@@ -21,15 +20,6 @@ from workers.sim.features import amp_dim, amp_features
 WALK, RUN = "humanoid3d_walk", "humanoid3d_run"
 HIDDEN = (256, 256)  # smaller than AMP's (1024, 512) to keep the tests fast
 BATCH = 256
-
-
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    """Small networks on a 2-core machine: one thread avoids contention."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
 
 
 def transitions(character, lib: MotionLibrary, clip: str, frames: np.ndarray, step: int = 1) -> np.ndarray:

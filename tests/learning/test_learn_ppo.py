@@ -17,7 +17,6 @@ from __future__ import annotations
 import time
 
 import numpy as np
-import pytest
 import torch
 
 from workers.learners.ppo import PPOConfig, PPOLearner, Rollout
@@ -40,15 +39,6 @@ CONFIG = PPOConfig(
 )
 ROLLOUT_STEPS = 32  # × 64 environments = 2048 samples per iteration; episodes (50 steps) end mid-rollout
 EVAL = PendulumConfig(num_envs=256)
-
-
-@pytest.fixture(autouse=True)
-def one_thread():
-    """Tiny networks gain nothing from threads, and on a busy two-core machine they lose a lot."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
 
 
 def train(iterations: int, seed: int = 0) -> PPOLearner:

@@ -21,15 +21,6 @@ from workers.models.discriminator import Discriminator
 OBS = 5  # Φ(s) size in these tests; transitions are [B, 10]
 
 
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    """Tiny networks: one thread is faster than two contending ones on this machine."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 def small_config(**overrides) -> DiscriminatorConfig:
     return DiscriminatorConfig(**{"hidden": (16, 16), "lr": 1e-3, **overrides})
 

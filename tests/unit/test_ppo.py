@@ -15,16 +15,6 @@ from workers.learners.ppo import PPOConfig, PPOLearner, Rollout
 from workers.losses.ppo import action_bound_loss, compute_gae, normalize_advantages, ppo_loss
 from workers.models.actor_critic import ActorCritic
 
-
-@pytest.fixture(autouse=True)
-def one_thread():
-    """Tiny networks gain nothing from threads, and on a busy two-core machine they lose a lot."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 SMALL = dict(policy_hidden=(16, 16), value_hidden=(16, 16), action_std=0.3, optimizer="adam", policy_lr=1e-3)
 
 

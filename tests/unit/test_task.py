@@ -16,14 +16,6 @@ from workers.models.vae import VAEController
 from workers.models.world_model import WorldModel
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
-
-
 def standing(yaw: float = 0.0, vel=(0.0, 0.0, 0.0), height: float = 0.9) -> torch.Tensor:
     """One character of 15 bodies, root at (1, 2, height) facing `yaw`, root moving at `vel`."""
     bs = torch.zeros(1, 15, 13)

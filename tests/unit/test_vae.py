@@ -16,14 +16,6 @@ from workers.models.vae import MixtureOfExperts, VAEController
 from workers.models.world_model import WorldModel
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
-
-
 def test_gaussian_kl_matches_torch_distributions():
     g = torch.Generator().manual_seed(0)
     mq, mp = torch.randn(5, 7, generator=g), torch.randn(5, 7, generator=g)

@@ -14,14 +14,6 @@ from workers.losses.world_model import world_model_loss
 from workers.models import body_state as B
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
-
-
 def test_loss_known_answer():
     # One body: position off by (0.3, 0, 0) → mean |error| over 3 coordinates = 0.1; identical rotations;
     # linear velocity off by 0.6 in one coordinate → 0.2; angular velocity equal.
