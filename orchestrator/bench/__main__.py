@@ -17,7 +17,13 @@ def main(argv: list[str] | None = None) -> int:
     sim.add_argument("--sim-hz", type=float, default=480.0)
     sim.add_argument("--control-hz", type=float, default=30.0)
     sim.add_argument("--seed", type=int, default=0)
-    for p in (sim,):
+    learners = sub.add_parser("learners", help="each learner's update(batch): updates/s and share of matmul peak")
+    learners.add_argument("--learners", help="comma-separated subset of world_model,vae,discriminator,ppo,task")
+    learners.add_argument("--sizes", help="comma-separated subset of paper,small")
+    learners.add_argument("--seconds", type=float, default=5.0, help="time budget of each measurement")
+    learners.add_argument("--threads", type=int, help="torch.set_num_threads (default: torch's default)")
+    learners.add_argument("--seed", type=int, default=0)
+    for p in (sim, learners):
         p.add_argument("--json", action="store_true", help="print JSON instead of the table")
         p.add_argument("--out", type=Path, help="also write the JSON to this file")
     args = parser.parse_args(argv)
@@ -29,6 +35,20 @@ def main(argv: list[str] | None = None) -> int:
             parser.error("--envs must be at least 1 and --seconds positive")
         result = bench_sim.run(args.envs, args.seconds, args.sim_hz, args.control_hz, args.seed)
         text = bench_sim.format_table(result)
+    elif args.what == "learners":
+        from orchestrator.bench import learners as bench_learners
+
+        try:
+            names = bench_learners.parse_names(args.learners, bench_learners.LEARNERS, "learner")
+            sizes = bench_learners.parse_names(args.sizes, bench_learners.SIZES, "size")
+        except ValueError as e:
+            parser.error(str(e))
+        if args.seconds <= 0 or (args.threads is not None and args.threads < 1):
+            parser.error("--seconds must be positive and --threads at least 1")
+        result = bench_learners.run(
+            names, sizes, args.seconds, args.threads, args.seed, progress=lambda m: print(m, file=sys.stderr)
+        )
+        text = bench_learners.format_table(result)
     else:  # pragma: no cover - argparse refuses unknown commands
         parser.error(f"unknown benchmark {args.what}")
 

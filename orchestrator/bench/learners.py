@@ -1,0 +1,410 @@
+"""Learner benchmark: updates per second and matmul efficiency of each learner's `update(batch)`.
+
+For every learner and size the benchmark builds the learner and one synthetic
+but valid batch (random body states with unit quaternions and small velocities,
+random actions and observations; timing does not depend on the values), then:
+
+- FLOPs: one update (forward, backward and optimiser step) runs under a
+  dispatch mode that records every matmul it dispatches (operator, shapes,
+  strides) and counts its FLOPs with the formulas of `torch.utils.flop_counter`
+  (those FlopCounterMode uses; FlopCounterMode itself cannot wrap the
+  discriminator's update, whose gradient penalty calls `autograd.grad` on a leaf,
+  which its module hooks refuse). The count covers mm, addmm, bmm and baddbmm:
+  the backward pass, the gradient penalty's double backward and the input
+  gradients through frozen networks included; elementwise work (activations,
+  layer norms, the optimiser) is not counted.
+- updates/s: rounds of one timed `update(batch)` (always the same batch) and
+  one timed replay (below), for about `seconds` and at least 3 rounds;
+  updates/s = 1 / the median update time. Interleaving the two keeps them under
+  the same load when other processes share the machine.
+- matmul peak: the replay runs the update's recorded matmuls alone, in order,
+  back to back (same operators, shapes, strides, dtype and threads; random
+  operands made once), each call timed; peak = FLOPs per update / the median
+  replay time. Skinny matmuls (the MoE's gate mixing, 64-wide layers) are slow
+  in the replay too, so they are not charged against a big-GEMM ideal.
+- achieved GFLOP/s = FLOPs per update × updates/s; share = achieved / peak,
+  i.e. the fraction of an update's wall time its matmuls alone take; the rest
+  is elementwise work, autograd, the optimiser, Python and dispatch.
+
+Sizes ("paper" are the configs' defaults; "small" halves the widths or more and
+uses batches of 64 and shorter rollouts):
+
+  learner        paper                                          small
+  world_model    MLP 4x512, T_w=8, N_w=512                      4x256, T_w=4, N=64
+  vae            MoE 6x(3x512), enc 2x512, z 64, T=24, N=512    6x(3x256), enc 2x256, z 32, T=8, N=64
+                 (ControlVAE objective through a 4x512 world model; the small one's is 4x256)
+  discriminator  (1024, 512), 256 data + 256 policy             (256, 128), 64 + 64
+  ppo            policy and value (1024, 512), minibatch 256    (256, 128), minibatch 64
+  task           heading, (256, 128), T=16, N=256 on the paper  (128, 64), T=8, N=64 on the small
+                 VAE controller and world model                 controller and world model
+
+The humanoid has 15 bodies and 28 actions; AMP's Φ(s) has 105 features
+(`workers.sim.features.amp_dim`), which is also the observation size used for PPO.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import platform
+import statistics
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+from torch.utils._python_dispatch import TorchDispatchMode
+from torch.utils._pytree import tree_map
+from torch.utils.flop_counter import flop_registry
+
+from workers.learners.base import Learner
+from workers.learners.discriminator import DiscriminatorBatch, DiscriminatorConfig, DiscriminatorLearner
+from workers.learners.ppo import PPOBatch, PPOConfig, PPOLearner
+from workers.learners.task import TaskBatch, TaskConfig, TaskLearner
+from workers.learners.vae import VAEBatch, VAEConfig, VAELearner
+from workers.learners.world_model import WorldModelBatch, WorldModelConfig, WorldModelLearner
+from workers.models.vae import VAEController
+from workers.models.world_model import WorldModel
+from workers.sim.features import StateLayout
+
+NUM_BODIES, ACTION_DIM, AMP_OBS_DIM, DT = 15, 28, 105, 1.0 / 30.0
+LEARNERS = ("world_model", "vae", "discriminator", "ppo", "task")
+SIZES = ("paper", "small")
+ALIASES = {"disc": "discriminator", "wm": "world_model"}
+MIN_REPEATS = 3
+MAX_REPEATS = 200
+
+
+@dataclass
+class Case:
+    learner: Learner
+    batch: Any
+    description: str
+
+
+# Synthetic batches ------------------------------------------------------------
+def body_states(gen: torch.Generator, *lead: int) -> torch.Tensor:
+    """Random body states [*lead, B, 13]: positions around 1 m high, unit quaternions, small velocities."""
+    shape = (*lead, NUM_BODIES)
+    pos = torch.randn(*shape, 3, generator=gen) * 0.3 + torch.tensor([0.0, 0.0, 1.0])
+    quat = torch.randn(*shape, 4, generator=gen)
+    quat = quat / quat.norm(dim=-1, keepdim=True)
+    lin = torch.randn(*shape, 3, generator=gen) * 0.5
+    ang = torch.randn(*shape, 3, generator=gen)
+    return torch.cat((pos, quat, lin, ang), dim=-1)
+
+
+def actions(gen: torch.Generator, *lead: int) -> torch.Tensor:
+    return torch.randn(*lead, ACTION_DIM, generator=gen) * 0.3
+
+
+def frozen_world_model(hidden: tuple[int, ...], gen: torch.Generator) -> WorldModel:
+    """A world model of the given width whose normalisers have seen one batch of random transitions."""
+    model = WorldModel(NUM_BODIES, ACTION_DIM, hidden, "elu", DT)
+    model.observe(body_states(gen, 256), actions(gen, 256), body_states(gen, 256))
+    return model
+
+
+def _paper(size: str) -> bool:
+    if size not in SIZES:
+        raise ValueError(f"unknown size {size!r}; expected one of {SIZES}")
+    return size == "paper"
+
+
+# One builder per learner ----------------------------------------------------------
+def build_world_model(size: str, gen: torch.Generator) -> Case:
+    c = WorldModelConfig() if _paper(size) else WorldModelConfig(hidden=(256,) * 4, rollout_steps=4, batch_size=64)
+    n, t = c.batch_size, c.rollout_steps
+    batch = WorldModelBatch(body_states(gen, n, t + 1), actions(gen, n, t))
+    return Case(WorldModelLearner(NUM_BODIES, ACTION_DIM, DT, c), batch, f"MLP {_dims(c.hidden)}, T_w={t}, N_w={n}")
+
+
+def _vae_config(size: str) -> VAEConfig:
+    if _paper(size):
+        return VAEConfig()
+    return VAEConfig(
+        latent_dim=32, encoder_hidden=(256, 256), policy_hidden=(256, 256, 256), rollout_steps=8, batch_size=64
+    )
+
+
+def _wm_hidden(size: str) -> tuple[int, ...]:
+    return WorldModelConfig().hidden if _paper(size) else (256,) * 4
+
+
+def build_vae(size: str, gen: torch.Generator) -> Case:
+    c = _vae_config(size)
+    n, t = c.batch_size, c.rollout_steps
+    learner = VAELearner(NUM_BODIES, ACTION_DIM, c, world_model=frozen_world_model(_wm_hidden(size), gen))
+    batch = VAEBatch(body_states(gen, n, t + 1), reference=body_states(gen, n, t + 1))
+    policy = f"MoE {c.num_experts}x({_dims(c.policy_hidden)})" if c.policy == "moe" else f"MLP {_dims(c.policy_hidden)}"
+    return Case(learner, batch, f"{policy}, enc {_dims(c.encoder_hidden)}, z {c.latent_dim}, T={t}, N={n}")
+
+
+def build_discriminator(size: str, gen: torch.Generator) -> Case:
+    c = DiscriminatorConfig() if _paper(size) else DiscriminatorConfig(hidden=(256, 128), batch_size=64)
+    n, d = c.batch_size, 2 * AMP_OBS_DIM
+    batch = DiscriminatorBatch(torch.randn(n, d, generator=gen), torch.randn(n, d, generator=gen))
+    return Case(DiscriminatorLearner(AMP_OBS_DIM, c), batch, f"MLP {_dims(c.hidden)}, {n} data + {n} policy")
+
+
+def build_ppo(size: str, gen: torch.Generator) -> Case:
+    if _paper(size):
+        c = PPOConfig()
+    else:
+        c = PPOConfig(policy_hidden=(256, 128), value_hidden=(256, 128), minibatch_size=64)
+    n = c.minibatch_size
+    batch = PPOBatch(
+        obs=torch.randn(n, AMP_OBS_DIM, generator=gen),
+        actions=actions(gen, n),
+        log_probs=torch.randn(n, generator=gen),
+        advantages=torch.randn(n, generator=gen),
+        returns=torch.randn(n, generator=gen),
+        values=torch.randn(n, generator=gen),
+    )
+    return Case(PPOLearner(AMP_OBS_DIM, ACTION_DIM, c), batch, f"pi, V {_dims(c.policy_hidden)}, minibatch {n}")
+
+
+def build_task(size: str, gen: torch.Generator) -> Case:
+    if _paper(size):
+        c = TaskConfig()
+    else:
+        c = TaskConfig(hidden=(128, 64), helper_hidden=(64, 64), rollout_steps=8, batch_size=64)
+    v = _vae_config(size)
+    controller = VAEController(
+        StateLayout(NUM_BODIES).dim,
+        ACTION_DIM,
+        prior=v.prior,
+        latent_dim=v.latent_dim,
+        encoder_hidden=v.encoder_hidden,
+        policy=v.policy,
+        policy_hidden=v.policy_hidden,
+        num_experts=v.num_experts,
+        gate_hidden=v.gate_hidden,
+        act=v.activation,
+        sigma_p=v.sigma_p,
+    )
+    learner = TaskLearner(controller, frozen_world_model(_wm_hidden(size), gen), ACTION_DIM, c)
+    n, t = c.batch_size, c.rollout_steps
+    if c.task != "heading":  # pragma: no cover - the builder only makes heading batches
+        raise ValueError("the task benchmark builds heading goals only")
+    heading = (torch.rand(n, t, 1, generator=gen) * 2 - 1) * math.pi
+    speed = torch.rand(n, t, 1, generator=gen) * 2.0
+    batch = TaskBatch(body_states(gen, n), torch.cat((heading, speed), dim=-1))
+    return Case(learner, batch, f"{c.task}, {_dims(c.hidden)} on VAE z {v.latent_dim}, T={t}, N={n}")
+
+
+BUILDERS: dict[str, Callable[[str, torch.Generator], Case]] = {
+    "world_model": build_world_model,
+    "vae": build_vae,
+    "discriminator": build_discriminator,
+    "ppo": build_ppo,
+    "task": build_task,
+}
+
+
+def _dims(hidden: tuple[int, ...]) -> str:
+    return f"{len(hidden)}x{hidden[0]}" if len(set(hidden)) == 1 else "(" + ", ".join(map(str, hidden)) + ")"
+
+
+# Recording the matmuls of one update ------------------------------------------------
+@dataclass(frozen=True)
+class TensorSpec:
+    shape: tuple[int, ...]
+    stride: tuple[int, ...]
+    dtype: torch.dtype
+
+    def make(self, gen: torch.Generator) -> torch.Tensor:
+        """A tensor with this shape and these strides (views, transposes and broadcasts kept) over random values."""
+        size = 1 + sum((n - 1) * s for n, s in zip(self.shape, self.stride, strict=True)) if all(self.shape) else 0
+        return torch.randn(size, generator=gen).to(self.dtype).as_strided(self.shape, self.stride)
+
+
+def _spec(x: Any) -> Any:
+    return TensorSpec(tuple(x.shape), tuple(x.stride()), x.dtype) if isinstance(x, torch.Tensor) else x
+
+
+class MatmulRecorder(TorchDispatchMode):
+    """Counts each distinct call of a FLOP-counted operator by (operator, argument shapes and strides)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.calls: dict[str, list[Any]] = {}  # key -> [op, args spec, kwargs spec, count, FLOPs of one call]
+        self.order: list[str] = []  # the keys in the order the update called them
+
+    @property
+    def flops(self) -> int:
+        return sum(count * flops for *_, count, flops in self.calls.values())
+
+    def __torch_dispatch__(self, func: Any, types: Any, args: tuple = (), kwargs: dict | None = None) -> Any:
+        kwargs = kwargs or {}
+        out = func(*args, **kwargs)
+        count_flops = flop_registry.get(func.overloadpacket)
+        if count_flops is not None:
+            a, k = tree_map(_spec, args), tree_map(_spec, kwargs)
+            key = f"{func}{a}{k}"
+            entry = self.calls.setdefault(key, [func, a, k, 0, 0])
+            self.order.append(key)
+            entry[3] += 1
+            entry[4] = count_flops(*args, **kwargs, out_val=out)
+        return out
+
+
+def _label(op: Any, args: Any) -> str:
+    shapes = ["x".join(map(str, a.shape)) for a in args if isinstance(a, TensorSpec)]
+    return f"{op.overloadpacket.__name__} " + " @ ".join(shapes[-2:]) if shapes else str(op)
+
+
+class MatmulReplay:
+    """The recorded matmuls of one update, replayed alone and in order on operands made once."""
+
+    def __init__(self, recorder: MatmulRecorder, seed: int = 0):
+        gen = torch.Generator().manual_seed(seed)
+
+        def make(x: Any) -> Any:
+            return x.make(gen) if isinstance(x, TensorSpec) else x
+
+        self.calls = {key: (op, tree_map(make, a), tree_map(make, k)) for key, (op, a, k, *_) in recorder.calls.items()}
+        self.info = recorder.calls
+        self.order = recorder.order
+        self.busy = dict.fromkeys(self.calls, 0.0)  # seconds per key, summed over passes
+        self.passes = 0
+        for op, args, kwargs in self.calls.values():  # touch every operand once
+            op(*args, **kwargs)
+
+    def run(self) -> float:
+        """One pass over the update's matmuls; the sum of the calls' times."""
+        calls, busy, clock = self.calls, self.busy, time.perf_counter
+        total = 0.0
+        for key in self.order:
+            op, args, kwargs = calls[key]
+            t0 = clock()
+            op(*args, **kwargs)
+            dt = clock() - t0
+            busy[key] += dt
+            total += dt
+        self.passes += 1
+        return total
+
+    def top(self, n: int) -> list[dict[str, Any]]:
+        """The n matmuls with the most FLOPs per update: calls, GFLOP and their mean rate in the replays."""
+        rows = []
+        for key, (op, a_spec, _, count, flops) in self.info.items():
+            seconds = self.busy[key] / max(self.passes, 1)
+            rate = count * flops / seconds / 1e9 if seconds > 0 else float("nan")
+            rows.append({"op": _label(op, a_spec), "calls": count, "gflop": count * flops / 1e9, "gflops_per_s": rate})
+        return sorted(rows, key=lambda r: -r["gflop"])[:n]
+
+
+# The measurement -------------------------------------------------------------------
+def measure(case: Case, seconds: float) -> dict[str, Any]:
+    """FLOPs, updates/s, achieved and peak matmul rates of one learner at one size."""
+    learner, batch = case.learner, case.batch
+    recorder = MatmulRecorder()
+    t0 = time.perf_counter()
+    with recorder:
+        learner.update(batch)
+    first = time.perf_counter() - t0
+    flops = recorder.flops
+    replay = MatmulReplay(recorder)
+    if first < 0.25 * seconds:  # one more warm-up round when it is cheap
+        learner.update(batch)
+        replay.run()
+    updates: list[float] = []
+    passes: list[float] = []
+    end = time.perf_counter() + seconds
+    while len(updates) < MIN_REPEATS or (time.perf_counter() < end and len(updates) < MAX_REPEATS):
+        t0 = time.perf_counter()
+        learner.update(batch)
+        updates.append(time.perf_counter() - t0)
+        passes.append(replay.run())
+    median, matmul_s = statistics.median(updates), statistics.median(passes)
+    achieved = flops / median
+    peak = flops / matmul_s if matmul_s > 0 else float("nan")
+    return {
+        "description": case.description,
+        "repeats": len(updates),
+        "update_s_median": median,
+        "update_s_min": min(updates),
+        "updates_per_s": 1.0 / median,
+        "flops_per_update": flops,
+        "gflop_per_update": flops / 1e9,
+        "achieved_gflops_per_s": achieved / 1e9,
+        "matmul_peak_gflops_per_s": peak / 1e9,
+        "share_of_peak": achieved / peak if flops else float("nan"),
+        "matmul_s_median": matmul_s,
+        "recorded_update_s": first,
+        "matmul_calls_per_update": len(recorder.order),
+        "distinct_matmuls": len(recorder.calls),
+        "top_matmuls": replay.top(5),
+    }
+
+
+def parse_names(text: str | None, allowed: tuple[str, ...], what: str) -> list[str]:
+    """A comma-separated subset of `allowed` (aliases accepted), in the given order; all when empty."""
+    if not text:
+        return list(allowed)
+    names = [ALIASES.get(n.strip(), n.strip()) for n in text.split(",") if n.strip()]
+    unknown = [n for n in names if n not in allowed]
+    if unknown:
+        raise ValueError(f"unknown {what} {', '.join(unknown)}; expected some of {', '.join(allowed)}")
+    return list(dict.fromkeys(names))
+
+
+def run(
+    learners: list[str] | None = None,
+    sizes: list[str] | None = None,
+    seconds: float = 5.0,
+    threads: int | None = None,
+    seed: int = 0,
+    progress: Callable[[str], None] | None = None,
+) -> dict[str, Any]:
+    learners = list(learners or LEARNERS)
+    sizes = list(sizes or SIZES)
+    previous = torch.get_num_threads()
+    if threads:
+        torch.set_num_threads(threads)
+    wall0 = time.perf_counter()
+    results = []
+    try:
+        for name in learners:
+            for size in sizes:
+                if progress:
+                    progress(f"{name} ({size}) ...")
+                gen = torch.Generator().manual_seed(seed)
+                with torch.random.fork_rng(devices=[]):
+                    torch.manual_seed(seed)
+                    case = BUILDERS[name](size, gen)
+                    results.append({"learner": name, "size": size, **measure(case, seconds)})
+        used = torch.get_num_threads()
+    finally:
+        torch.set_num_threads(previous)
+    return {
+        "benchmark": "learners",
+        "machine": {"host": platform.node(), "cpus": os.cpu_count(), "python": platform.python_version()},
+        "versions": {"torch": torch.__version__},
+        "threads": used,
+        "seconds_per_measurement": seconds,
+        "wall_s": time.perf_counter() - wall0,
+        "results": results,
+    }
+
+
+def format_table(r: dict[str, Any]) -> str:
+    lines = [
+        f"learner benchmark: {r['threads']} torch thread(s), about {r['seconds_per_measurement']:g} s per "
+        f"measurement, {r['wall_s']:.0f} s in all",
+        f"{'learner':<14}{'size':<7}{'updates/s':>10}{'reps':>6}{'GFLOP/upd':>11}{'GFLOP/s':>9}"
+        f"{'mm peak GFLOP/s':>17}{'share':>7}  sizes",
+    ]
+    for x in r["results"]:
+        lines.append(
+            f"{x['learner']:<14}{x['size']:<7}{x['updates_per_s']:>10.2f}{x['repeats']:>6}"
+            f"{x['gflop_per_update']:>11.3f}{x['achieved_gflops_per_s']:>9.1f}"
+            f"{x['matmul_peak_gflops_per_s']:>17.1f}{x['share_of_peak']:>7.2f}  {x['description']}"
+        )
+    lines.append(
+        "GFLOP/upd: matmul FLOPs of one update, forward and backward (torch.utils.flop_counter's formulas); "
+        "mm peak: the same matmuls replayed alone; share = achieved / peak; reps: timed rounds (medians)."
+    )
+    return "\n".join(lines)

@@ -1,0 +1,52 @@
+"""The learner benchmark runs and reports consistent figures (speed itself is not asserted)."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+from torch.utils.flop_counter import FlopCounterMode
+
+from orchestrator.bench import learners as bench
+from orchestrator.bench.__main__ import main
+
+
+def test_bench_learners_json(tmp_path, capsys):
+    out = tmp_path / "learners.json"
+    argv = ["learners", "--learners", "world_model,ppo", "--sizes", "small", "--seconds", "0.05", "--threads", "1"]
+    assert main([*argv, "--json", "--out", str(out)]) == 0
+    printed = json.loads(capsys.readouterr().out)
+    saved = json.loads(out.read_text())
+    assert printed == saved
+    assert saved["benchmark"] == "learners" and saved["threads"] == 1
+    assert [(r["learner"], r["size"]) for r in saved["results"]] == [("world_model", "small"), ("ppo", "small")]
+    for r in saved["results"]:
+        assert r["repeats"] >= bench.MIN_REPEATS
+        assert r["flops_per_update"] > 0 and r["distinct_matmuls"] > 0
+        assert r["updates_per_s"] == pytest.approx(1 / r["update_s_median"])
+        assert r["achieved_gflops_per_s"] == pytest.approx(r["gflop_per_update"] * r["updates_per_s"])
+        assert r["share_of_peak"] == pytest.approx(r["achieved_gflops_per_s"] / r["matmul_peak_gflops_per_s"])
+        assert 0 < r["share_of_peak"] <= 1.5
+        assert sum(m["gflop"] for m in r["top_matmuls"]) <= r["gflop_per_update"] * (1 + 1e-9)
+    table = bench.format_table(saved)
+    assert "world_model" in table and "ppo" in table and "share" in table
+
+
+@pytest.mark.parametrize("name", ["world_model", "ppo"])
+def test_recorded_flops_match_flop_counter(name):
+    """The recorder counts the same FLOPs as torch's FlopCounterMode, backward pass included."""
+    case = bench.BUILDERS[name]("small", torch.Generator().manual_seed(0))
+    with FlopCounterMode(display=False) as counter:
+        case.learner.update(case.batch)
+    recorder = bench.MatmulRecorder()
+    with recorder:
+        case.learner.update(case.batch)
+    assert recorder.flops == counter.get_total_flops() > 0
+
+
+def test_parse_names():
+    assert bench.parse_names(None, bench.LEARNERS, "learner") == list(bench.LEARNERS)
+    assert bench.parse_names("disc, vae,disc", bench.LEARNERS, "learner") == ["discriminator", "vae"]
+    with pytest.raises(ValueError, match="unknown size"):
+        bench.parse_names("huge", bench.SIZES, "size")
