@@ -35,7 +35,7 @@ class Weights:
     state: dict[str, torch.Tensor]
 
 
-@dataclass(frozen=True)
+@dataclass
 class Schedule:
     """A scalar that changes with the update count.
 

@@ -111,6 +111,26 @@ def state_weight_vector(num_bodies: int, weights: dict[str, float]) -> torch.Ten
     return w
 
 
+def build_controller(num_bodies: int, action_dim: int, config: VAEConfig) -> VAEController:
+    """The networks a VAEConfig describes (learners, rollout workers and evaluation build them alike)."""
+    c = config
+    return VAEController(
+        StateLayout(num_bodies).dim,
+        action_dim,
+        prior=c.prior,
+        latent_dim=c.latent_dim,
+        encoder_hidden=c.encoder_hidden,
+        policy=c.policy,
+        policy_hidden=c.policy_hidden,
+        num_experts=c.num_experts,
+        gate_hidden=c.gate_hidden,
+        act=c.activation,
+        sigma_p=c.sigma_p,
+        posterior_std=c.posterior_std,
+        log_std_range=(c.log_std_min, c.log_std_max),
+    )
+
+
 class VAELearner(Learner):
     name = "vae"
 
@@ -123,22 +143,7 @@ class VAELearner(Learner):
         seed: int = 0,
     ):
         self.config = c = config or VAEConfig()
-        state_dim = StateLayout(num_bodies).dim
-        self.vae = VAEController(
-            state_dim,
-            action_dim,
-            prior=c.prior,
-            latent_dim=c.latent_dim,
-            encoder_hidden=c.encoder_hidden,
-            policy=c.policy,
-            policy_hidden=c.policy_hidden,
-            num_experts=c.num_experts,
-            gate_hidden=c.gate_hidden,
-            act=c.activation,
-            sigma_p=c.sigma_p,
-            posterior_std=c.posterior_std,
-            log_std_range=(c.log_std_min, c.log_std_max),
-        )
+        self.vae = build_controller(num_bodies, action_dim, c)
         super().__init__(self.vae, make_optimizer(c.optimizer, self.vae.parameters(), c.lr), c.grad_clip)
         needs_model = c.objective == "controlvae" or (c.objective == "physicsvae" and c.alpha > 0)
         if needs_model and world_model is None:

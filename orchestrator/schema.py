@@ -1,0 +1,218 @@
+"""The configuration schema: one dataclass per config group, registered in Hydra's ConfigStore.
+
+`conf/` YAML is type-checked against these when Hydra composes it, and
+`validate(cfg)` turns the composed config into these objects, whose
+`__post_init__` checks refuse bad values with the key named, before any process
+starts. The learners' own configs (`WorldModelConfig`, `VAEConfig`) are used as
+they are, so a field is documented once, where it is declared.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+from hydra.core.config_store import ConfigStore
+from omegaconf import DictConfig, OmegaConf
+
+from workers.learners.vae import VAEConfig
+from workers.learners.world_model import WorldModelConfig
+from workers.motion.errors import ClipError
+from workers.motion.formats import resolve
+
+LOCOMOTION = [
+    "humanoid3d_walk",
+    "humanoid3d_run",
+    "walker/turn_left0",
+    "walker/turn_left1",
+    "walker/turn_right0",
+    "walker/turn_right1",
+]
+
+
+class ConfigError(ValueError):
+    """A config value that cannot work; the message starts with its dotted key."""
+
+
+# The learners' configs name their keys from their own root; here they live under algo.
+_KEY_ROOTS = {"vae.": "algo.vae.", "world_model.": "algo.world_model."}
+
+
+def _full_key(message: str) -> str:
+    for short, full in _KEY_ROOTS.items():
+        if message.startswith(short):
+            return full + message[len(short) :]
+    return message
+
+
+@dataclass
+class CharacterConfig:
+    # MJCF file of the character; null uses the bundled humanoid.
+    xml: str | None = None
+    # Physics and control rates (PhysicsVAE: 480 / 30 Hz; see the README for the measurement).
+    sim_hz: float = 480.0
+    control_hz: float = 30.0
+    # Collisions between the character's own bodies.
+    self_collision: bool = False
+
+    def __post_init__(self) -> None:
+        ratio = self.sim_hz / self.control_hz if self.control_hz > 0 else 0
+        if self.control_hz <= 0 or ratio < 1 or abs(ratio - round(ratio)) > 1e-6:
+            raise ConfigError(f"character.sim_hz ({self.sim_hz}) must be a whole multiple of control_hz")
+
+
+@dataclass
+class MotionConfig:
+    # Bundled clip names (`python -m orchestrator.motion list`) or paths to DeepMimic, BVH or NPZ files.
+    clips: list[str] = field(default_factory=lambda: list(LOCOMOTION))
+    # Add left-right mirrored copies (ControlVAE doubles its data this way).
+    mirror: bool = True
+    # Processed-clip cache; null: ~/.cache/mocap-orchestrator/motion or $MOCAP_CACHE_DIR.
+    cache_dir: str | None = None
+
+    def __post_init__(self) -> None:
+        if not self.clips:
+            raise ConfigError("motion.clips is empty")
+        for i, clip in enumerate(self.clips):
+            try:
+                resolve(clip)
+            except ClipError as e:
+                raise ConfigError(f"motion.clips[{i}]: {e}") from None
+
+
+@dataclass
+class LoopConfig:
+    # Training iterations; each collects, updates both learners, publishes weights and reports.
+    iterations: int = 200
+    # Control steps each rollout worker collects per iteration, over all its environments.
+    collect_steps: int = 16
+    # Learner samples (transitions in rollouts) per collected sample, for each learner.
+    replay_ratio: float = 4.0
+    # Transitions kept in the replay buffer (ControlVAE N_B = 50,000); the oldest are evicted.
+    replay_capacity: int = 50_000
+    # Transitions collected before the first update.
+    warmup: int = 1_000
+    # Probability of z from the prior instead of the posterior while collecting (ControlVAE: 0.4).
+    prior_probability: float = 0.4
+    # A worker more than this many versions behind the newest weights refreshes before collecting.
+    staleness: int = 1
+    # Iterations between checkpoints (and at the end); 0: only at the end.
+    checkpoint_every: int = 50
+    # Iterations between evaluations (and at the end); 0: only at the end.
+    eval_every: int = 0
+
+    def __post_init__(self) -> None:
+        for key in ("iterations", "collect_steps", "replay_capacity"):
+            if getattr(self, key) < 1:
+                raise ConfigError(f"algo.loop.{key} must be at least 1, got {getattr(self, key)}")
+        if self.replay_ratio <= 0:
+            raise ConfigError(f"algo.loop.replay_ratio must be positive, got {self.replay_ratio}")
+        if not 0 <= self.prior_probability <= 1:
+            raise ConfigError(f"algo.loop.prior_probability must be in [0, 1], got {self.prior_probability}")
+
+
+@dataclass
+class AlgoConfig:
+    # The method; ControlVAE (world model + VAE) is the one the loop runs today.
+    name: str = "controlvae"
+    world_model: WorldModelConfig = field(default_factory=WorldModelConfig)
+    vae: VAEConfig = field(default_factory=VAEConfig)
+    loop: LoopConfig = field(default_factory=LoopConfig)
+
+    def __post_init__(self) -> None:
+        if self.name != "controlvae":
+            raise ConfigError(f"algo.name: {self.name!r} is not runnable yet; expected 'controlvae'")
+
+
+@dataclass
+class RuntimeConfig:
+    # The backend's class: orchestrator.runtime.local.LocalRuntime or orchestrator.runtime.ray.RayRuntime.
+    _target_: str = "orchestrator.runtime.local.LocalRuntime"
+    # Rollout workers and the environments each steps as one batch.
+    rollout_workers: int = 2
+    envs_per_worker: int = 16
+    # Ray only: cluster address (null starts a local Ray for the run; "auto" or "ray://host:port" joins one).
+    address: str | None = None
+    # Ray only: CPUs per rollout worker and per learner, GPUs per learner, actor restarts after a crash.
+    worker_cpus: float = 1.0
+    learner_cpus: float = 1.0
+    learner_gpus: float = 0.0
+    max_restarts: int = 3
+    # Ray only: object store size (MiB) when Ray is started for the run.
+    object_store_mb: int = 512
+    # Torch threads in each process (1 avoids contention between actors sharing cores).
+    torch_threads: int = 1
+
+    def __post_init__(self) -> None:
+        if self.rollout_workers < 1:
+            raise ConfigError(f"runtime.rollout_workers must be at least 1, got {self.rollout_workers}")
+        if self.envs_per_worker < 1:
+            raise ConfigError(f"runtime.envs_per_worker must be at least 1, got {self.envs_per_worker}")
+
+
+@dataclass
+class TrackingConfig:
+    # Off: nothing is written (a no-op tracker).
+    enabled: bool = True
+    # MLflow tracking URI; null: an embedded SQLite store in the run directory.
+    uri: str | None = None
+    # MLflow experiment; null: the preset's name.
+    experiment: str | None = None
+    # Run name; null: made from the overrides.
+    run_name: str | None = None
+
+
+@dataclass
+class EvalConfig:
+    # Time-until-fall (PhysicsVAE Fig. 9): rollouts from one standing start, z from the prior every step.
+    fall_rollouts: int = 100
+    fall_max_seconds: float = 60.0
+    # Tracking error (ControlVAE Fig. 14): seconds of each clip tracked with the posterior.
+    tracking_seconds: float = 2.0
+
+    def __post_init__(self) -> None:
+        if self.fall_rollouts < 1:
+            raise ConfigError(f"eval.fall_rollouts must be at least 1, got {self.fall_rollouts}")
+        if self.fall_max_seconds <= 0 or self.tracking_seconds <= 0:
+            raise ConfigError("eval.fall_max_seconds and eval.tracking_seconds must be positive")
+
+
+@dataclass
+class Config:
+    character: CharacterConfig = field(default_factory=CharacterConfig)
+    motion: MotionConfig = field(default_factory=MotionConfig)
+    algo: AlgoConfig = field(default_factory=AlgoConfig)
+    runtime: RuntimeConfig = field(default_factory=RuntimeConfig)
+    tracking: TrackingConfig = field(default_factory=TrackingConfig)
+    eval: EvalConfig = field(default_factory=EvalConfig)
+    # Seed of everything: network initialisation, sampling, the simulators.
+    seed: int = 0
+    # The preset that made this config (the MLflow experiment unless tracking.experiment says otherwise).
+    preset: str = "default"
+    # Where checkpoints, the embedded MLflow store and spooled metrics go.
+    run_dir: str = "outputs/run"
+    # Continue the run in run_dir from its last checkpoint (same MLflow run).
+    resume: bool = False
+    # Show a progress bar.
+    progress: bool = True
+
+
+def register() -> None:
+    cs = ConfigStore.instance()
+    cs.store(name="schema", node=Config)
+
+
+def validate(cfg: DictConfig | dict[str, Any]) -> Config:
+    """The composed config as schema objects; raises ConfigError naming the key of a bad value."""
+    if not isinstance(cfg, DictConfig):
+        cfg = OmegaConf.create(cfg)
+    try:
+        structured = OmegaConf.merge(OmegaConf.structured(Config), cfg)
+    except Exception as e:  # OmegaConf's type errors name the full key
+        raise ConfigError(str(e)) from None
+    try:
+        return OmegaConf.to_object(structured)
+    except ConfigError:
+        raise
+    except ValueError as e:
+        raise ConfigError(_full_key(str(e))) from None
