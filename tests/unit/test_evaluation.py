@@ -1,0 +1,103 @@
+"""Evaluation protocols: time-until-fall (PhysicsVAE) and tracking error (ControlVAE), at small settings."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from workers.evaluation import (
+    fall_start,
+    reference_targets,
+    relative_position_error,
+    time_until_fall,
+    tracking_error,
+)
+from workers.learners.vae import VAEConfig, build_controller
+
+SMALL = VAEConfig(latent_dim=8, encoder_hidden=(32,), policy="mlp", policy_hidden=(64,))
+DT = 1 / 30
+
+
+def controller(character, seed=0, out_gain=1.0):
+    """A small untrained controller; out_gain scales its output layer (the default init is near zero)."""
+    torch.manual_seed(seed)
+    c = build_controller(character.num_bodies, character.num_actions, SMALL)
+    with torch.no_grad():
+        c.policy.net.out.weight.mul_(out_gain)
+    return c
+
+
+def test_relative_position_error_by_hand():
+    ref = np.random.default_rng(0).normal(size=(2, 5, 3))
+    assert np.allclose(relative_position_error(ref, ref), 0.0)
+    # A rigid translation of the whole body changes no position relative to the root.
+    assert np.allclose(relative_position_error(ref + np.array([1.0, -2.0, 0.5]), ref), 0.0)
+    # Moving one non-root body by (0.3, 0.4, 0) is an error of 0.5 m on 1 of the 4 non-root bodies.
+    moved = ref.copy()
+    moved[:, 2] += [0.3, 0.4, 0.0]
+    np.testing.assert_allclose(relative_position_error(moved, ref), [0.125, 0.125])
+    # Moving the root alone by 0.1 m moves every other body by 0.1 m relative to it.
+    moved = ref.copy()
+    moved[:, 0] += [0.0, 0.0, 0.1]
+    np.testing.assert_allclose(relative_position_error(moved, ref), [0.1, 0.1])
+
+
+def test_time_until_fall_of_an_untrained_controller(character, walk_run):
+    c = controller(character)
+    out = time_until_fall(c, character, walk_run, num_rollouts=8, max_seconds=5.0)
+    times = np.array(out["times"])
+    assert len(times) == 8
+    assert np.isfinite(times).all() and (times > 0).all() and (times <= 5.0).all()
+    # A rollout ends on a control step: times are whole steps.
+    np.testing.assert_allclose(times / DT, np.round(times / DT), atol=1e-9)
+    assert out["mean"] == pytest.approx(times.mean()) and out["median"] == pytest.approx(np.median(times))
+    assert out["fallen"] == 1.0  # near-zero PD targets (a stiff T-pose) topple it within the 5 s
+    again = time_until_fall(c, character, walk_run, num_rollouts=8, max_seconds=5.0)
+    assert again == out  # deterministic for a seed
+    # A cap before the first fall: every rollout counts as the cap and none as fallen.
+    capped = time_until_fall(c, character, walk_run, num_rollouts=4, max_seconds=0.2)
+    assert capped["times"] == [0.2] * 4 and capped["fallen"] == 0.0
+    assert c.training  # the controller's mode is restored
+
+
+def test_time_until_fall_has_one_start_and_samples_z_per_rollout(character, walk_run):
+    """All rollouts start from the same state: a policy that ignores z falls at the same step in every
+    rollout; one that depends strongly on z (output layer scaled up) falls at different times."""
+    blind = controller(character)
+    with torch.no_grad():
+        blind.policy.net.out.weight.zero_()  # a = bias = 0 for every s and z
+    out = time_until_fall(blind, character, walk_run, num_rollouts=6, max_seconds=5.0, start=("humanoid3d_run", 3))
+    assert len(set(out["times"])) == 1 and out["std"] == pytest.approx(0.0, abs=1e-12)
+    sensitive = controller(character, out_gain=100.0)
+    out = time_until_fall(sensitive, character, walk_run, num_rollouts=6, max_seconds=5.0)
+    assert len(set(out["times"])) > 1
+    assert fall_start(walk_run) == (walk_run.clip_id("humanoid3d_walk"), 0)
+    with pytest.raises(KeyError, match="no clip 'nope'"):
+        fall_start(walk_run, ("nope", 0))
+    with pytest.raises(ValueError, match="outside clip"):
+        fall_start(walk_run, ("humanoid3d_walk", 1000))
+
+
+def test_tracking_error_of_the_reference_is_small_and_of_an_untrained_controller_large(character, walk_run):
+    pd = reference_targets(walk_run)
+
+    def hold(sim):
+        """Before each step, put every character at rest on the reference's *next* pose and aim at that pose:
+        the step then ends on the reference up to what gravity and the PD servos move in 1/30 s (measured:
+        walk 0.2 mm, run 1.4 mm). Comparing with the reference one frame off would give 16 and 51 mm."""
+        ref = walk_run.state(sim.clip_id, sim.start_frame + sim.steps + 1)
+        sim.set_state(np.arange(sim.num_envs), ref.qpos, np.zeros_like(ref.qvel))
+        return pd(sim)
+
+    near = tracking_error(None, walk_run, character, clip_seconds=1.0, policy=hold)
+    assert set(near) == {"humanoid3d_walk", "humanoid3d_run", "mean"}
+    assert near["humanoid3d_walk"] < 0.003 and near["humanoid3d_run"] < 0.003
+    assert near["mean"] == pytest.approx((near["humanoid3d_walk"] + near["humanoid3d_run"]) / 2)
+    # The untrained controller holds a T-pose and falls: tens of centimetres (measured 0.34 and 0.41 m).
+    c = controller(character)
+    far = tracking_error(c, walk_run, character, clip_seconds=2.0)
+    assert far["humanoid3d_walk"] > 0.15 and far["humanoid3d_run"] > 0.15
+    assert far == tracking_error(c, walk_run, character, clip_seconds=2.0)
+    with pytest.raises(ValueError, match="controller or a policy"):
+        tracking_error(None, walk_run, character)

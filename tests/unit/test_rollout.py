@@ -1,0 +1,125 @@
+"""The rollout worker: shapes, version tags, determinism, resets, resume; its trajectories in the replay buffer."""
+
+from __future__ import annotations
+
+import copy
+
+import numpy as np
+import pytest
+import torch
+
+from workers.learners.base import Weights
+from workers.learners.vae import VAEConfig, build_controller
+from workers.models import body_state
+from workers.replay import ReplayBuffer
+from workers.rollout import RolloutWorker
+
+SMALL = VAEConfig(latent_dim=8, encoder_hidden=(32,), policy="mlp", policy_hidden=(64,))
+M = 4
+
+
+@pytest.fixture(scope="module")
+def weights(character) -> Weights:
+    torch.manual_seed(11)
+    controller = build_controller(character.num_bodies, character.num_actions, SMALL)
+    return Weights(7, {k: v.clone() for k, v in controller.state_dict().items()})
+
+
+def make_worker(character, library, weights=None, seed=0, worker_id=0, **kwargs) -> RolloutWorker:
+    worker = RolloutWorker(character, library, M, SMALL, seed=seed, worker_id=worker_id, **kwargs)
+    if weights is not None:
+        worker.set_weights(weights)
+    return worker
+
+
+@pytest.fixture(scope="module")
+def collected(character, walk_run, weights):
+    """60 steps (2 s) of 4 environments; the untrained policy falls within about a second."""
+    worker = make_worker(character, walk_run, weights, seed=3, worker_id=2)
+    return worker, worker.collect(60)
+
+
+def test_shapes_and_tags(character, walk_run, collected):
+    worker, traj = collected
+    b, a = character.num_bodies, character.num_actions
+    assert traj.states.shape == traj.next_states.shape == (60, M, b, 13)
+    assert traj.actions.shape == (60, M, a)
+    assert traj.done.shape == traj.clip_id.shape == traj.frame.shape == (60, M)
+    assert traj.states.dtype == traj.next_states.dtype == traj.actions.dtype == np.float32
+    assert traj.done.dtype == bool
+    assert (traj.version, traj.worker) == (7, 2)
+    assert np.isfinite(traj.states).all() and np.isfinite(traj.actions).all()
+    assert traj.done.any(), "the untrained policy should fall within 2 s"
+    stats = worker.stats()
+    assert stats["steps"] == 60 * M
+    assert stats["episodes"] == traj.done.sum()
+    assert stats["falls"] + stats["tracking_failures"] + stats["clip_ends"] + stats["timeouts"] >= stats["episodes"]
+    assert 0 < stats["mean_episode_length"] <= 60
+    assert make_worker(character, walk_run).collect(1).version == -1  # no weights received yet
+
+
+def test_transitions_chain_and_resets_start_on_the_reference(walk_run, collected):
+    _, traj = collected
+    cont = ~traj.done[:-1]  # [T-1, M]
+    # Without a reset the next state is the following state, and the reference advances one frame.
+    np.testing.assert_array_equal(traj.next_states[:-1][cont], traj.states[1:][cont])
+    np.testing.assert_array_equal(traj.frame[1:][cont], traj.frame[:-1][cont] + 1)
+    np.testing.assert_array_equal(traj.clip_id[1:][cont], traj.clip_id[:-1][cont])
+    # After a reset the state is the reference state at the new start, and differs from the true successor.
+    t, e = np.nonzero(traj.done[:-1])
+    assert len(t) > 0
+    ref = body_state.pack(walk_run.state(traj.clip_id[t + 1, e], traj.frame[t + 1, e]))
+    np.testing.assert_allclose(traj.states[t + 1, e], ref, atol=1e-5)
+    assert not np.allclose(traj.next_states[t, e], traj.states[t + 1, e])
+
+
+def test_same_seed_same_trajectories(character, walk_run, weights):
+    a = make_worker(character, walk_run, weights, seed=5).collect(20)
+    b = make_worker(character, walk_run, weights, seed=5).collect(20)
+    c = make_worker(character, walk_run, weights, seed=6).collect(20)
+    for field in ("states", "next_states", "actions", "done", "clip_id", "frame"):
+        np.testing.assert_array_equal(getattr(a, field), getattr(b, field))
+    assert not np.array_equal(a.actions, c.actions)
+
+
+def test_noise_and_prior_choice(character, walk_run, weights):
+    """With no noise and the prior never used, actions are the policy's at the posterior sample;
+    raising the noise changes them by about its size."""
+    quiet = make_worker(character, walk_run, weights, seed=1, action_noise=0.0, prior_probability=0.0)
+    noisy = make_worker(character, walk_run, weights, seed=1, action_noise=0.5, prior_probability=0.0)
+    assert not quiet.use_prior.any()
+    diff = noisy.collect(1).actions - quiet.collect(1).actions
+    assert diff.std() == pytest.approx(0.5, rel=0.2)
+    assert make_worker(character, walk_run, weights, prior_probability=1.0).use_prior.all()
+    with pytest.raises(ValueError, match="prior_probability"):
+        make_worker(character, walk_run, prior_probability=1.5)
+
+
+def test_state_dict_resumes_exactly(character, walk_run, weights):
+    worker = make_worker(character, walk_run, weights, seed=4)
+    worker.collect(13)
+    state = copy.deepcopy(worker.state_dict())
+    expected = worker.collect(30)
+    resumed = make_worker(character, walk_run, weights, seed=99)
+    resumed.load_state_dict(state)
+    got = resumed.collect(30)
+    for field in ("states", "next_states", "actions", "done", "clip_id", "frame"):
+        np.testing.assert_array_equal(getattr(got, field), getattr(expected, field))
+    assert got.version == expected.version == 7
+    assert resumed.stats()["episodes"] == worker.stats()["episodes"]
+
+
+def test_windows_from_real_trajectories_run_across_collects(character, walk_run, weights):
+    worker = make_worker(character, walk_run, weights, seed=8, worker_id=1)
+    buffer = ReplayBuffer(2_000, character.num_bodies, character.num_actions, seed=0)
+    successor = {}
+    for _ in range(3):
+        traj = worker.collect(8)
+        buffer.add(traj)
+        flat = (-1,) + traj.states.shape[2:]
+        for s, n in zip(traj.states.reshape(flat), traj.next_states.reshape(flat), strict=True):
+            successor[s.tobytes()] = n
+    batch = buffer.sample_windows(64, 12)  # longer than one collect of 8 steps
+    for window in batch.states:
+        for j in range(12):
+            np.testing.assert_array_equal(successor[window[j].tobytes()], window[j + 1])

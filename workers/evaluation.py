@@ -1,0 +1,189 @@
+"""The papers' evaluation protocols, run in the batched simulator.
+
+- `time_until_fall` (PhysicsVAE Fig. 9, §5.5.1): every rollout starts from one
+  fixed reference state, z is drawn from the prior at every control step, and a
+  rollout ends at its first fall (a ground contact of a body other than the feet)
+  or at `max_seconds`. Tracking termination and clip ends play no part.
+- `tracking_error` (ControlVAE Fig. 14): each clip is tracked from its first
+  frame with the posterior mean z = μ_q(s_t, s̃_{t+1}); the error is the mean over
+  steps and non-root bodies of ‖(x_j − x_root) − (x̃_j − x̃_root)‖ in metres
+  (AMP's Eq. 10 without time warping).
+
+Both batch their rollouts as the environments of one `BatchedSim` and run the
+networks in eval mode without gradients; the controller's mode is restored after.
+Actions are the policy's mean (no exploration noise).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+from collections.abc import Callable, Iterator
+
+import numpy as np
+import torch
+
+from workers.models import body_state
+from workers.models.vae import VAEController
+from workers.motion.library import MotionLibrary
+from workers.sim.character import Character
+from workers.sim.env import BatchedSim, SimConfig
+
+DEFAULT_START_CLIP = "humanoid3d_walk"
+
+# A policy maps the simulator's current state to actions [N, A]; it can stand in for the controller.
+Policy = Callable[[BatchedSim], np.ndarray]
+
+
+@contextlib.contextmanager
+def _inference(controller: torch.nn.Module | None) -> Iterator[None]:
+    was_training = controller.training if controller is not None else False
+    if controller is not None:
+        controller.eval()
+    try:
+        with torch.no_grad():
+            yield
+    finally:
+        if controller is not None:
+            controller.train(was_training)
+
+
+def _features(sim: BatchedSim) -> torch.Tensor:
+    """s [N, D] of the simulated characters, as the learners compute it (float32 body states)."""
+    return body_state.features(torch.from_numpy(body_state.pack(sim.kin_state())))
+
+
+def _no_tracking_termination(config: SimConfig | None) -> SimConfig:
+    return dataclasses.replace(config or SimConfig(), tracking_error_m=0.0, max_episode_steps=0)
+
+
+def reference_targets(library: MotionLibrary) -> Policy:
+    """A baseline policy: the PD targets of the reference's next pose (no feedback at all)."""
+
+    def policy(sim: BatchedSim) -> np.ndarray:
+        target = library.state(sim.clip_id, sim.start_frame + sim.steps + 1)
+        return sim.character.qpos_to_action(target.qpos)
+
+    return policy
+
+
+def relative_position_error(xpos: np.ndarray, ref_xpos: np.ndarray) -> np.ndarray:
+    """Mean over non-root bodies of ‖(x_j − x_root) − (x̃_j − x̃_root)‖: [..., B, 3] × 2 -> [...].
+
+    Body 0 is the root; its own term is always zero, so it is left out of the mean.
+    """
+    rel = xpos[..., 1:, :] - xpos[..., :1, :]
+    ref_rel = ref_xpos[..., 1:, :] - ref_xpos[..., :1, :]
+    return np.linalg.norm(rel - ref_rel, axis=-1).mean(-1)
+
+
+# ----------------------------------------------------------------------------
+# Time until fall
+# ----------------------------------------------------------------------------
+def fall_start(library: MotionLibrary, start: tuple[str, int] | None = None) -> tuple[int, int]:
+    """(clip id, frame) of the fixed start: `start`, else frame 0 of the walk clip, else of the first clip."""
+    if start is None:
+        name = DEFAULT_START_CLIP if DEFAULT_START_CLIP in library.names else library.names[0]
+        start = (name, 0)
+    name, frame = start
+    clip = library.clip_id(name)
+    if not 0 <= frame < library.num_frames[clip]:
+        raise ValueError(f"start frame {frame} is outside clip {name!r} ({library.num_frames[clip]} frames)")
+    return clip, int(frame)
+
+
+def time_until_fall(
+    controller: VAEController,
+    character: Character,
+    library: MotionLibrary,
+    num_rollouts: int = 100,
+    max_seconds: float = 60.0,
+    start: tuple[str, int] | None = None,
+    sim_config: SimConfig | None = None,
+    seed: int = 0,
+) -> dict:
+    """Seconds until the first fall of `num_rollouts` rollouts driven by z ~ p(z | s) at every step.
+
+    All rollouts start from the reference state of `start` = (clip name, frame) (see `fall_start`).
+    A rollout that has not fallen after `max_seconds` counts as `max_seconds`. The simulation stops
+    as soon as every rollout has fallen.
+
+    Returns {"mean", "std", "median": seconds, "fallen": fraction that fell, "times": [num_rollouts]
+    seconds}.
+    """
+    if num_rollouts < 1 or max_seconds <= 0:
+        raise ValueError(f"need num_rollouts >= 1 and max_seconds > 0, got {num_rollouts} and {max_seconds}")
+    config = _no_tracking_termination(sim_config)
+    clip, frame = fall_start(library, start)
+    sim = BatchedSim(character, library, num_rollouts, config, seed=seed)
+    sim.reset(np.arange(num_rollouts), np.full(num_rollouts, clip), np.full(num_rollouts, frame))
+    generator = torch.Generator().manual_seed(seed)
+    dt = 1.0 / config.control_hz
+    max_steps = int(round(max_seconds * config.control_hz))
+    fall_step = np.zeros(num_rollouts, int)  # 0: has not fallen
+    with _inference(controller):
+        for t in range(1, max_steps + 1):
+            s = _features(sim)
+            z = controller.prior_dist(s).rsample(generator)
+            result = sim.step(controller.act(s, z).numpy())
+            fall_step[(fall_step == 0) & result.fell] = t
+            if (fall_step > 0).all():
+                break
+    times = np.where(fall_step > 0, fall_step * dt, max_seconds)
+    return {
+        "mean": float(times.mean()),
+        "std": float(times.std()),
+        "median": float(np.median(times)),
+        "fallen": float((fall_step > 0).mean()),
+        "times": times.tolist(),
+    }
+
+
+# ----------------------------------------------------------------------------
+# Tracking error
+# ----------------------------------------------------------------------------
+def tracking_error(
+    controller: VAEController | None,
+    library: MotionLibrary,
+    character: Character,
+    clip_seconds: float = 2.0,
+    sim_config: SimConfig | None = None,
+    seed: int = 0,
+    policy: Policy | None = None,
+) -> dict[str, float]:
+    """Per clip, the mean body-position error relative to the root (metres) while tracking it.
+
+    Every clip is one environment started on its frame 0 and driven by a = μ_π(s, μ_q(s, s̃_{t+1}))
+    (or by `policy`, which replaces the controller, e.g. `reference_targets(library)`) for
+    `clip_seconds`; a one-shot clip shorter than that is tracked to its last frame, a cyclic one
+    through its cycles. A character that falls is not reset: it keeps trying and its error keeps
+    counting, so a fall shows as a large error rather than as a shorter average.
+
+    Returns {clip name: error, ..., "mean": the unweighted mean over clips}.
+    """
+    if controller is None and policy is None:
+        raise ValueError("tracking_error needs a controller or a policy")
+    config = _no_tracking_termination(sim_config)
+    n = library.num_clips
+    sim = BatchedSim(character, library, n, config, seed=seed)
+    clips = np.arange(n)
+    sim.reset(clips, clips, np.zeros(n, int))
+    wanted = max(int(round(clip_seconds * config.control_hz)), 1)
+    steps = np.where(library.loop, wanted, np.minimum(wanted, library.num_frames - 1))  # [n]
+    total = np.zeros(n)
+    with _inference(controller):
+        for t in range(int(steps.max())):
+            if policy is not None:
+                actions = np.asarray(policy(sim))
+            else:
+                s = _features(sim)
+                ref_next = library.features(sim.clip_id, sim.start_frame + sim.steps + 1)
+                posterior, _ = controller.encode(s, torch.from_numpy(ref_next.astype(np.float32)))
+                actions = controller.act(s, posterior.mean).numpy()
+            result = sim.step(actions)
+            err = relative_position_error(result.kin.xpos, sim.reference_state().xpos)
+            total += np.where(t < steps, err, 0.0)
+    per_clip = total / np.maximum(steps, 1)
+    out = {name: float(e) for name, e in zip(library.names, per_clip, strict=True)}
+    out["mean"] = float(per_clip.mean())
+    return out
