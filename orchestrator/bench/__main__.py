@@ -23,7 +23,14 @@ def main(argv: list[str] | None = None) -> int:
     learners.add_argument("--seconds", type=float, default=5.0, help="time budget of each measurement")
     learners.add_argument("--threads", type=int, help="torch.set_num_threads (default: torch's default)")
     learners.add_argument("--seed", type=int, default=0)
-    for p in (sim, learners):
+    pipeline = sub.add_parser("pipeline", help="end-to-end samples/s and updates/s, local against Ray")
+    pipeline.add_argument("--runtimes", default="local,ray", help="comma-separated subset of local,ray")
+    pipeline.add_argument("--workers", default="1,2", help="comma-separated rollout worker counts")
+    pipeline.add_argument("--iterations", type=int, default=20, help="timed loop iterations per measurement")
+    pipeline.add_argument("--warmup", type=int, default=3, help="untimed iterations first")
+    pipeline.add_argument("--envs", type=int, default=16, help="environments per rollout worker")
+    pipeline.add_argument("--seed", type=int, default=0)
+    for p in (sim, learners, pipeline):
         p.add_argument("--json", action="store_true", help="print JSON instead of the table")
         p.add_argument("--out", type=Path, help="also write the JSON to this file")
     args = parser.parse_args(argv)
@@ -49,6 +56,22 @@ def main(argv: list[str] | None = None) -> int:
             names, sizes, args.seconds, args.threads, args.seed, progress=lambda m: print(m, file=sys.stderr)
         )
         text = bench_learners.format_table(result)
+    elif args.what == "pipeline":
+        from orchestrator.bench import pipeline as bench_pipeline
+
+        runtimes = [r for r in args.runtimes.split(",") if r]
+        if not set(runtimes) <= {"local", "ray"}:
+            parser.error(f"--runtimes: expected local and/or ray, got {args.runtimes}")
+        try:
+            workers = [int(w) for w in args.workers.split(",") if w]
+        except ValueError:
+            parser.error(f"--workers: expected integers, got {args.workers}")
+        if not workers or min(workers) < 1 or args.iterations < 1 or args.envs < 1:
+            parser.error("--workers, --iterations and --envs must be at least 1")
+        result = bench_pipeline.run(
+            runtimes, workers, args.iterations, args.warmup, args.envs, args.seed, lambda m: print(m, file=sys.stderr)
+        )
+        text = bench_pipeline.format_table(result)
     else:  # pragma: no cover - argparse refuses unknown commands
         parser.error(f"unknown benchmark {args.what}")
 

@@ -22,6 +22,9 @@ class Resources:
 class Runtime:
     name = "base"
 
+    def reserve(self, bundles: list[Resources]) -> None:
+        """Reserve every component's resources at once, in spawn order, before the first spawn."""
+
     def spawn(self, cls: type, *args: Any, name: str, resources: Resources | None = None, **kwargs: Any) -> Any:
         raise NotImplementedError
 

@@ -1,0 +1,53 @@
+"""`python -m orchestrator [+experiment=NAME] [key=value ...] [-m]`: compose, validate, build, run."""
+
+from __future__ import annotations
+
+import sys
+
+import hydra
+from hydra.core.hydra_config import HydraConfig
+from omegaconf import DictConfig
+
+from orchestrator.schema import ConfigError, register, validate
+
+register()
+
+
+def _run_name() -> str | None:
+    try:
+        overrides = HydraConfig.get().overrides.task
+    except ValueError:
+        return None
+    shown = [o for o in overrides if not o.startswith(("+experiment", "hydra.", "run_dir", "progress"))]
+    return " ".join(shown) or None
+
+
+def _is_multirun() -> bool:
+    from hydra.types import RunMode
+
+    return HydraConfig.get().mode == RunMode.MULTIRUN
+
+
+@hydra.main(version_base="1.3", config_path="../conf", config_name="config")
+def main(dcfg: DictConfig) -> float | None:
+    try:
+        cfg = validate(dcfg)
+    except ConfigError as e:
+        print(f"config error: {e}", file=sys.stderr)
+        sys.exit(2)
+    if cfg.tracking.run_name is None:
+        cfg.tracking.run_name = _run_name()
+    from orchestrator.build import run
+    from orchestrator.sweep import parent_of
+
+    parent = parent_of(HydraConfig.get().sweep.dir) if _is_multirun() else None
+    if parent is not None:
+        # A point of a sweep: a child of the sweep's parent run, in the sweep's store.
+        cfg.tracking.uri = cfg.tracking.uri or parent["uri"]
+        cfg.tracking.experiment = parent["experiment"]
+    summary = run(cfg, parent_run_id=parent["parent_run_id"] if parent else None)
+    return summary.get("eval/time_until_fall_mean")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,100 @@
+"""End-to-end throughput of the training loop: local against Ray, with 1…N rollout workers.
+
+Each measurement builds the smoke preset's components (tracking off) with the
+given runtime and worker count, runs warm-up iterations, then times `iterations`
+loop steps (collect → replay → update → publish → report) and reports
+environment samples per second and learner updates per second. Start-up and
+evaluation are not timed.
+"""
+
+from __future__ import annotations
+
+import os
+import platform
+import time
+from pathlib import Path
+from tempfile import TemporaryDirectory
+from typing import Any
+
+from hydra import compose, initialize_config_dir
+
+from orchestrator.build import build_runtime
+from orchestrator.components import load_world
+from orchestrator.loop import Trainer
+from orchestrator.schema import register, validate
+from orchestrator.tracking.base import NoOpTracker
+
+CONF = Path(__file__).resolve().parents[2] / "conf"
+
+
+def measure(runtime: str, workers: int, iterations: int, warmup: int, envs: int, seed: int) -> dict[str, Any]:
+    register()
+    with TemporaryDirectory() as tmp, initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+        overrides = [
+            "+experiment=smoke",
+            f"runtime={runtime}",
+            f"runtime.rollout_workers={workers}",
+            f"runtime.envs_per_worker={envs}",
+            f"run_dir={tmp}",
+            "tracking=off",
+            "progress=false",
+            f"seed={seed}",
+            "algo.loop.warmup=0",
+        ]
+        cfg = validate(compose("config", overrides=overrides))
+        character, _ = load_world(cfg)
+        rt = build_runtime(cfg)
+        try:
+            trainer = Trainer(cfg, rt, NoOpTracker(), character.num_bodies, character.num_actions)
+            trainer.publish()
+            trainer.launch_collection()
+            for _ in range(warmup):
+                trainer.step()
+            s0, u0 = trainer.state.samples, trainer.state.world_model_updates + trainer.state.vae_updates
+            t0 = time.perf_counter()
+            for _ in range(iterations):
+                trainer.step()
+            elapsed = time.perf_counter() - t0
+            samples = trainer.state.samples - s0
+            updates = trainer.state.world_model_updates + trainer.state.vae_updates - u0
+        finally:
+            rt.shutdown()
+    return {
+        "runtime": runtime,
+        "workers": workers,
+        "envs_per_worker": envs,
+        "iterations": iterations,
+        "seconds": elapsed,
+        "samples_per_s": samples / elapsed,
+        "updates_per_s": updates / elapsed,
+    }
+
+
+def run(
+    runtimes: list[str], workers: list[int], iterations: int, warmup: int, envs: int, seed: int, progress=None
+) -> dict[str, Any]:
+    results = []
+    for rt in runtimes:
+        for n in workers:
+            if progress:
+                progress(f"pipeline: {rt} with {n} rollout worker(s)...")
+            results.append(measure(rt, n, iterations, warmup, envs, seed))
+    return {
+        "benchmark": "pipeline",
+        "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version()},
+        "preset": "smoke (tracking off)",
+        "results": results,
+    }
+
+
+def format_table(result: dict[str, Any]) -> str:
+    lines = [f"pipeline benchmark: {result['preset']}, {result['machine']['cpus']} CPUs"]
+    lines.append(
+        f"{'runtime':<8} {'workers':>7} {'envs/worker':>11} {'samples/s':>10} {'updates/s':>10} {'seconds':>8}"
+    )
+    for r in result["results"]:
+        lines.append(
+            f"{r['runtime']:<8} {r['workers']:>7} {r['envs_per_worker']:>11} {r['samples_per_s']:>10.0f} "
+            f"{r['updates_per_s']:>10.1f} {r['seconds']:>8.1f}"
+        )
+    return "\n".join(lines)

@@ -1,0 +1,103 @@
+"""Build the experiment from a validated config and run it: tracker, runtime, trainer."""
+
+from __future__ import annotations
+
+import json
+import socket
+import subprocess
+import sys
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any
+
+import torch
+from hydra.utils import instantiate
+from omegaconf import OmegaConf
+
+from orchestrator import checkpoint
+from orchestrator.components import load_world
+from orchestrator.loop import Trainer
+from orchestrator.runtime.base import Runtime
+from orchestrator.schema import Config
+from orchestrator.tracking.base import NoOpTracker, Tracker, flatten
+
+RUN_FILE = "run.json"
+
+
+def git_commit() -> str:
+    try:
+        out = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True, timeout=5)
+        return out.stdout.strip() or "unknown"
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+
+
+def build_tracker(cfg: Config, run_id: str | None, parent_run_id: str | None = None) -> Tracker:
+    if not cfg.tracking.enabled:
+        return NoOpTracker()
+    from orchestrator.tracking.mlflow import MlflowTracker
+
+    tags = {"git_commit": git_commit(), "stage": cfg.algo.name, "algo": cfg.algo.name, "preset": cfg.preset}
+    tags["host"] = socket.gethostname()
+    return MlflowTracker(
+        uri=cfg.tracking.uri,
+        experiment=cfg.tracking.experiment or cfg.preset,
+        run_name=cfg.tracking.run_name,
+        run_id=run_id,
+        parent_run_id=parent_run_id,
+        tags=tags,
+        run_dir=Path(cfg.run_dir),
+    )
+
+
+def build_runtime(cfg: Config) -> Runtime:
+    """The backend named by runtime._target_, given the runtime group's fields."""
+    return instantiate(OmegaConf.structured(cfg.runtime), _convert_="all")
+
+
+def where_to_look(cfg: Config, tracker: Tracker, runtime: Runtime) -> str:
+    lines = []
+    if cfg.tracking.enabled:
+        uri = cfg.tracking.uri or f"sqlite:///{(Path(cfg.run_dir) / 'mlflow.db').resolve()}"
+        if uri.startswith("http"):
+            lines.append(f"MLflow: {uri} (run {tracker.run_id})")
+        else:
+            lines.append(f"MLflow UI: mlflow ui --backend-store-uri {uri} --host 127.0.0.1  (run {tracker.run_id})")
+    dashboard = runtime.dashboard_url()
+    lines.append(f"Ray dashboard: {dashboard}" if dashboard else "Ray dashboard: none (runtime=local)")
+    lines.append(f"Run directory: {cfg.run_dir}")
+    return "\n".join(lines)
+
+
+def run(cfg: Config, parent_run_id: str | None = None) -> dict[str, float]:
+    run_dir = Path(cfg.run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    torch.manual_seed(cfg.seed)
+    character, _ = load_world(cfg)  # a clip that does not load fails here, before any process starts
+    run_file = run_dir / RUN_FILE
+    resume_from = checkpoint.latest(run_dir / "checkpoints") if cfg.resume else None
+    run_id = json.loads(run_file.read_text())["run_id"] if cfg.resume and run_file.exists() else None
+    if cfg.resume and resume_from is None:
+        print(f"resume: no checkpoint in {run_dir / 'checkpoints'}; starting from scratch", file=sys.stderr)
+    tracker = build_tracker(cfg, run_id, parent_run_id)
+    if run_id is None:
+        resolved: dict[str, Any] = asdict(cfg)
+        tracker.log_params(flatten(resolved))
+        tracker.log_dict(resolved, "config.json")
+    run_file.write_text(json.dumps({"run_id": tracker.run_id}))
+    runtime = build_runtime(cfg)
+    status = "FAILED"
+    try:
+        trainer = Trainer(cfg, runtime, tracker, character.num_bodies, character.num_actions)
+        if resume_from is not None:
+            trainer.restore(resume_from)
+            print(f"resumed from {resume_from} at iteration {trainer.state.iteration}", file=sys.stderr)
+        summary = trainer.run()
+        status = "FINISHED"
+        print(where_to_look(cfg, tracker, runtime))
+        return summary
+    finally:
+        tracker.close(status)
+        # A run created late (the server was down at the start) has its id only now.
+        run_file.write_text(json.dumps({"run_id": tracker.run_id}))
+        runtime.shutdown()

@@ -1,0 +1,169 @@
+"""The components the loop wires together, as plain classes that build their own world.
+
+Each is constructed from the validated config inside whatever process hosts it
+(this one, or a Ray actor), loads the character and the motion library there,
+and exposes coarse methods: a rollout worker collects hundreds of steps per call,
+a learner takes a list of batches per call. None of them knows where it runs.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import torch
+
+from orchestrator.schema import Config
+from workers.learners.base import Weights
+from workers.learners.vae import VAEBatch, VAELearner
+from workers.learners.world_model import WorldModelBatch, WorldModelLearner
+from workers.models import body_state
+from workers.models.world_model import WorldModel
+from workers.motion.library import MotionLibrary
+from workers.replay import ReplayBuffer, Trajectory, WindowBatch
+from workers.rollout import RolloutWorker
+from workers.sim.character import Character
+from workers.sim.env import SimConfig
+
+
+def load_world(cfg: Config) -> tuple[Character, MotionLibrary]:
+    kwargs = {"self_collision": cfg.character.self_collision}
+    character = Character.load(cfg.character.xml, **kwargs) if cfg.character.xml else Character.load(**kwargs)
+    library = MotionLibrary.load(
+        character,
+        cfg.motion.clips,
+        fps=cfg.character.control_hz,
+        mirror=cfg.motion.mirror,
+        cache_dir=cfg.motion.cache_dir,
+    )
+    return character, library
+
+
+def sim_config(cfg: Config) -> SimConfig:
+    return SimConfig(sim_hz=cfg.character.sim_hz, control_hz=cfg.character.control_hz)
+
+
+def mean_metrics(metrics: list[dict[str, float]]) -> dict[str, float]:
+    if not metrics:
+        return {}
+    keys = metrics[-1].keys()
+    out = {k: float(np.mean([m[k] for m in metrics if k in m])) for k in keys}
+    out["updates"] = float(len(metrics))
+    return out
+
+
+def _seed(cfg: Config, offset: int) -> int:
+    return cfg.seed * 1000 + offset
+
+
+class RolloutActor:
+    def __init__(self, cfg: Config, worker_id: int):
+        torch.set_num_threads(cfg.runtime.torch_threads)
+        character, library = load_world(cfg)
+        self.worker = RolloutWorker(
+            character,
+            library,
+            cfg.runtime.envs_per_worker,
+            cfg.algo.vae,
+            sim_config(cfg),
+            seed=_seed(cfg, 100 + worker_id),
+            worker_id=worker_id,
+            prior_probability=cfg.algo.loop.prior_probability,
+            action_noise=cfg.algo.vae.action_noise,
+        )
+
+    def set_weights(self, weights: Weights) -> int:
+        self.worker.set_weights(weights)
+        return weights.version
+
+    def collect(self, steps: int) -> Trajectory:
+        return self.worker.collect(steps)
+
+    def stats(self) -> dict[str, float]:
+        return self.worker.stats()
+
+    def state_dict(self) -> dict[str, Any]:
+        return self.worker.state_dict()
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.worker.load_state_dict(state)
+
+
+class ReplayActor(ReplayBuffer):
+    def __init__(self, cfg: Config, num_bodies: int, action_dim: int):
+        super().__init__(cfg.algo.loop.replay_capacity, num_bodies, action_dim, seed=_seed(cfg, 1))
+
+    def add_trajectory(self, trajectory: Trajectory) -> dict[str, int]:
+        """Store a trajectory; a summary for the loop (the trajectory itself stays here)."""
+        self.add(trajectory)
+        return {
+            "transitions": int(trajectory.actions.shape[0] * trajectory.actions.shape[1]),
+            "version": int(trajectory.version),
+            "episode_ends": int(trajectory.done.sum()),
+            "size": len(self),
+        }
+
+    def sample_batches(self, count: int, size: int, length: int) -> list[WindowBatch]:
+        return [self.sample_windows(size, length) for _ in range(count)]
+
+
+class WorldModelActor:
+    def __init__(self, cfg: Config, num_bodies: int, action_dim: int):
+        torch.set_num_threads(cfg.runtime.torch_threads)
+        torch.manual_seed(_seed(cfg, 2))
+        self.learner = WorldModelLearner(num_bodies, action_dim, 1.0 / cfg.character.control_hz, cfg.algo.world_model)
+
+    def train(self, batches: list[WindowBatch]) -> dict[str, float]:
+        return mean_metrics([self.learner.update(WorldModelBatch(b.states, b.actions)) for b in batches])
+
+    def get_weights(self) -> Weights:
+        return self.learner.get_weights()
+
+    def state_dict(self) -> dict[str, Any]:
+        return self.learner.state_dict()
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.learner.load_state_dict(state)
+
+
+class VAEActor:
+    """The VAE learner with a frozen copy of the world model and the library it draws references from."""
+
+    def __init__(self, cfg: Config, num_bodies: int, action_dim: int):
+        torch.set_num_threads(cfg.runtime.torch_threads)
+        torch.manual_seed(_seed(cfg, 3))
+        _, self.library = load_world(cfg)
+        wm = cfg.algo.world_model
+        world_model = WorldModel(
+            num_bodies, action_dim, wm.hidden, wm.activation, 1.0 / cfg.character.control_hz, wm.integrator
+        )
+        self.learner = VAELearner(num_bodies, action_dim, cfg.algo.vae, world_model=world_model, seed=_seed(cfg, 4))
+        self.world_model_version = -1
+
+    def set_world_model_weights(self, weights: Weights) -> int:
+        self.learner.set_world_model_weights(weights)
+        self.world_model_version = weights.version
+        return weights.version
+
+    def reference(self, batch: WindowBatch) -> np.ndarray:
+        """Reference body states [n, L+1, B, 13] that follow each window's first frame."""
+        steps = np.arange(batch.states.shape[1])
+        clip = np.repeat(batch.clip_id[:, None], len(steps), axis=1)
+        kin = self.library.state(clip.ravel(), (batch.frame[:, None] + steps).ravel())
+        return body_state.pack(kin).reshape(batch.states.shape)
+
+    def train(self, batches: list[WindowBatch]) -> dict[str, float]:
+        metrics = [self.learner.update(VAEBatch(b.states, self.reference(b))) for b in batches]
+        out = mean_metrics(metrics)
+        out["world_model_version"] = float(self.world_model_version)
+        return out
+
+    def get_weights(self) -> Weights:
+        return self.learner.get_weights()
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"learner": self.learner.state_dict(), "world_model": self.learner.world_model.state_dict()}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.learner.load_state_dict(state["learner"])
+        self.learner.world_model.load_state_dict(state["world_model"])

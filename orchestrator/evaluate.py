@@ -1,0 +1,91 @@
+"""Evaluation in the loop: the papers' protocols on the current VAE weights, as metrics, JSON and plots.
+
+- time-until-fall (PhysicsVAE Fig. 9): one standing start, z from the prior every
+  control step, `eval.fall_rollouts` rollouts capped at `eval.fall_max_seconds`.
+- tracking error (ControlVAE Fig. 14): each clip tracked with the posterior for
+  `eval.tracking_seconds`; mean body-position error relative to the root.
+"""
+
+from __future__ import annotations
+
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+
+from orchestrator.components import load_world, sim_config  # noqa: E402
+from orchestrator.schema import Config  # noqa: E402
+from orchestrator.tracking.base import Tracker  # noqa: E402
+from workers.evaluation import time_until_fall, tracking_error  # noqa: E402
+from workers.learners.base import Weights  # noqa: E402
+from workers.learners.vae import build_controller  # noqa: E402
+
+
+def evaluate(cfg: Config, weights: Weights, tracker: Tracker, iteration: int, final: bool) -> dict[str, float]:
+    character, library = load_world(cfg)
+    controller = build_controller(character.num_bodies, character.num_actions, cfg.algo.vae)
+    controller.load_state_dict(weights.state)
+    controller.eval()
+    with torch.no_grad():
+        fall = time_until_fall(
+            controller,
+            character,
+            library,
+            num_rollouts=cfg.eval.fall_rollouts,
+            max_seconds=cfg.eval.fall_max_seconds,
+            sim_config=sim_config(cfg),
+            seed=cfg.seed,
+        )
+        track = tracking_error(
+            controller,
+            library,
+            character,
+            clip_seconds=cfg.eval.tracking_seconds,
+            sim_config=sim_config(cfg),
+            seed=cfg.seed,
+        )
+    metrics = {
+        "eval/time_until_fall_mean": float(fall["mean"]),
+        "eval/time_until_fall_std": float(fall["std"]),
+        "eval/time_until_fall_median": float(fall["median"]),
+        "eval/tracking_error_mean": float(track["mean"]),
+    }
+    metrics.update({f"eval/tracking_error/{k}": float(v) for k, v in track.items() if k != "mean"})
+    report = {"iteration": iteration, "policy_version": weights.version, "time_until_fall": fall, "tracking": track}
+    name = "final" if final else f"iter-{iteration:07d}"
+    tracker.log_dict(_jsonable(report), f"eval/{name}.json")
+    with tempfile.TemporaryDirectory() as tmp:
+        png = Path(tmp) / f"{name}.png"
+        _plot(fall, track, png, f"policy version {weights.version}")
+        tracker.log_artifact(str(png), "eval")
+    return metrics
+
+
+def _jsonable(x: Any) -> Any:
+    if isinstance(x, dict):
+        return {str(k): _jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple, np.ndarray)):
+        return [_jsonable(v) for v in x]
+    if isinstance(x, (np.floating, np.integer)):
+        return x.item()
+    return x
+
+
+def _plot(fall: dict[str, Any], track: dict[str, float], path: Path, title: str) -> None:
+    fig, (a, b) = plt.subplots(1, 2, figsize=(10, 3.5))
+    a.hist(np.asarray(fall["times"]), bins=20, color="tab:blue")
+    a.set_xlabel("time until fall (s)")
+    a.set_ylabel("rollouts")
+    clips = sorted(k for k in track if k != "mean")
+    b.barh(clips, [track[k] for k in clips], color="tab:orange")
+    b.set_xlabel("tracking error (m)")
+    fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)

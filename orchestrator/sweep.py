@@ -1,0 +1,136 @@
+"""Sweeps: one MLflow parent run per Hydra multirun, a child run per point, and the comparison at the end.
+
+`SweepCallback` (registered in conf/config.yaml) opens the parent run when the
+multirun starts and writes `sweep.json` into the sweep directory; each job reads
+it (`parent_of`) to log into the same store as a child. Without `tracking.uri` the
+store is one SQLite file in the sweep directory, which the basic launcher's
+sequential jobs share safely (parallel launchers need a tracking server).
+When the multirun ends, the children's final metrics are gathered into a table
+(CSV and Markdown) and a figure, logged to the parent run.
+"""
+
+from __future__ import annotations
+
+import json
+import socket
+from collections import defaultdict
+from pathlib import Path
+from typing import Any
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+from hydra.experimental.callback import Callback  # noqa: E402
+from omegaconf import DictConfig  # noqa: E402
+
+SWEEP_FILE = "sweep.json"
+COMPARED = ("eval/time_until_fall_mean", "eval/tracking_error_mean")
+
+
+def store_uri(sweep_dir: Path, uri: str | None) -> str:
+    return uri or f"sqlite:///{(sweep_dir / 'mlflow.db').resolve()}"
+
+
+def parent_of(sweep_dir: str | Path) -> dict[str, str] | None:
+    """The parent run's id and store for jobs of a multirun (None outside one)."""
+    path = Path(sweep_dir) / SWEEP_FILE
+    return json.loads(path.read_text()) if path.exists() else None
+
+
+class SweepCallback(Callback):
+    def __init__(self, compare_by: str = "algo.vae.prior") -> None:
+        self.compare_by = compare_by
+        self.tracker = None
+        self.sweep_dir: Path | None = None
+
+    def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
+        from orchestrator.tracking.mlflow import MlflowTracker
+
+        if not config.tracking.enabled:
+            return
+        self.sweep_dir = Path(config.hydra.sweep.dir)
+        self.sweep_dir.mkdir(parents=True, exist_ok=True)
+        uri = store_uri(self.sweep_dir, config.tracking.uri)
+        experiment = config.tracking.experiment or config.preset
+        self.tracker = MlflowTracker(
+            uri=uri,
+            experiment=experiment,
+            run_name=f"{config.preset} sweep",
+            tags={"preset": config.preset, "role": "sweep", "host": socket.gethostname()},
+            run_dir=self.sweep_dir,
+        )
+        self.tracker.set_tags({"sweep_id": self.tracker.run_id})
+        params = dict(config.hydra.sweeper.get("params") or {})
+        self.tracker.log_params({f"sweep.{k}": str(v) for k, v in params.items()})
+        info = {"parent_run_id": self.tracker.run_id, "uri": uri, "experiment": experiment}
+        (self.sweep_dir / SWEEP_FILE).write_text(json.dumps(info))
+
+    def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
+        if self.tracker is None:
+            return
+        from orchestrator.tracking.query import child_runs
+
+        self.tracker.flush()
+        children = child_runs(store_uri(self.sweep_dir, config.tracking.uri), self.tracker.run_id)
+        rows = child_results(children, self.compare_by)
+        if rows:
+            self.tracker.log_dict({"rows": rows}, "comparison.json")
+            table = self.sweep_dir / "comparison.md"
+            table.write_text(markdown_table(rows, self.compare_by))
+            self.tracker.log_artifact(str(table))
+            print(f"sweep {self.tracker.run_id}: {len(rows)} runs\n" + table.read_text())
+            png = self.sweep_dir / "comparison.png"
+            plot_comparison(rows, self.compare_by, png)
+            self.tracker.log_artifact(str(png))
+        self.tracker.close("FINISHED")
+
+
+def child_results(children: list[dict[str, Any]], compare_by: str) -> list[dict[str, Any]]:
+    """One row per child run: the compared parameter, the seed and the final evaluation metrics."""
+    rows = []
+    for child in children:
+        row = {compare_by: child["params"].get(compare_by), "seed": child["params"].get("seed")}
+        row.update({k: child["metrics"].get(k) for k in COMPARED})
+        row["run_id"] = child["run_id"]
+        rows.append(row)
+    return sorted(rows, key=lambda r: (str(r[compare_by]), str(r["seed"])))
+
+
+def grouped(rows: list[dict[str, Any]], compare_by: str) -> dict[str, dict[str, list[float]]]:
+    out: dict[str, dict[str, list[float]]] = defaultdict(lambda: defaultdict(list))
+    for r in rows:
+        for k in COMPARED:
+            if r.get(k) is not None:
+                out[str(r[compare_by])][k].append(float(r[k]))
+    return out
+
+
+def markdown_table(rows: list[dict[str, Any]], compare_by: str) -> str:
+    lines = [f"| {compare_by} | seeds | time until fall (s) | tracking error (m) |", "| --- | --- | --- | --- |"]
+    for value, metrics in grouped(rows, compare_by).items():
+        cells = []
+        for k in COMPARED:
+            v = np.asarray(metrics.get(k, []))
+            cells.append(f"{v.mean():.3f} ± {v.std():.3f}" if len(v) else "n/a")
+        n = max(len(metrics.get(k, [])) for k in COMPARED)
+        lines.append(f"| {value} | {n} | {cells[0]} | {cells[1]} |")
+    return "\n".join(lines) + "\n"
+
+
+def plot_comparison(rows: list[dict[str, Any]], compare_by: str, path: Path) -> None:
+    groups = grouped(rows, compare_by)
+    names = list(groups)
+    fig, axes = plt.subplots(1, 2, figsize=(9, 3.5))
+    for ax, key, label in zip(axes, COMPARED, ("time until fall (s)", "tracking error (m)"), strict=True):
+        means = [np.mean(groups[n][key]) if groups[n][key] else np.nan for n in names]
+        stds = [np.std(groups[n][key]) if groups[n][key] else 0.0 for n in names]
+        ax.bar(names, means, yerr=stds, capsize=4, color="tab:blue")
+        for i, n in enumerate(names):
+            ax.scatter([i] * len(groups[n][key]), groups[n][key], color="black", s=10, zorder=3)
+        ax.set_ylabel(label)
+        ax.set_xlabel(compare_by)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)

@@ -1,0 +1,27 @@
+"""Runs of the whole service, composed from conf/ exactly as `python -m orchestrator` composes them."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from hydra import compose, initialize_config_dir
+
+from orchestrator.schema import Config, register, validate
+
+CONF = Path(__file__).resolve().parents[2] / "conf"
+register()
+
+
+def smoke_config(run_dir: Path, *overrides: str) -> Config:
+    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+        cfg = compose("config", overrides=["+experiment=smoke", f"run_dir={run_dir}", "progress=false", *overrides])
+    return validate(cfg)
+
+
+@pytest.fixture
+def smoke(tmp_path):
+    def make(*overrides: str, name: str = "run") -> Config:
+        return smoke_config(tmp_path / name, *overrides)
+
+    return make

@@ -1,0 +1,67 @@
+"""`python -m orchestrator` as users run it: a bad value refused before anything starts, and a run
+killed after a checkpoint that resumes into the same MLflow run."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+from mlflow.tracking import MlflowClient
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def orchestrator(*args: str, **kwargs) -> subprocess.Popen:
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    return subprocess.Popen(
+        [sys.executable, "-m", "orchestrator", *args],
+        cwd=ROOT,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        **kwargs,
+    )
+
+
+def test_bad_value_fails_before_anything_starts(tmp_path):
+    proc = orchestrator("+experiment=smoke", f"run_dir={tmp_path / 'bad'}", "algo.vae.prior=uniform")
+    out, err = proc.communicate(timeout=120)
+    assert proc.returncode == 2
+    assert "config error: algo.vae.prior: unknown prior type 'uniform'" in err
+    assert not (tmp_path / "bad").exists()
+
+
+@pytest.mark.slow
+def test_killed_run_resumes_into_the_same_mlflow_run(tmp_path):
+    run_dir = tmp_path / "run"
+    common = ["+experiment=smoke", f"run_dir={run_dir}", "progress=false", "algo.loop.checkpoint_every=2"]
+    proc = orchestrator(*common, "algo.loop.iterations=1000")
+    ckpt_dir = run_dir / "checkpoints"
+    deadline = time.time() + 240
+    while time.time() < deadline and not list(ckpt_dir.glob("ckpt-0000004.pt")):
+        assert proc.poll() is None, proc.communicate()[1][-2000:]
+        time.sleep(0.2)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait(timeout=30)
+    last = max(int(p.stem.split("-")[1]) for p in ckpt_dir.glob("ckpt-*.pt"))
+    run_id = json.loads((run_dir / "run.json").read_text())["run_id"]
+
+    resumed = orchestrator(*common, f"algo.loop.iterations={last + 4}", "resume=true")
+    out, err = resumed.communicate(timeout=300)
+    assert resumed.returncode == 0, err[-3000:]
+    assert "resumed from" in err and "MLflow UI: mlflow ui --backend-store-uri" in out
+    assert json.loads((run_dir / "run.json").read_text())["run_id"] == run_id
+    client = MlflowClient(f"sqlite:///{run_dir}/mlflow.db")
+    assert client.get_run(run_id).info.status == "FINISHED"
+    steps = [m.step for m in client.get_metric_history(run_id, "throughput/samples_per_s")]
+    per_iteration = 2 * 8 * 16
+    # Logged before the kill (possibly past the checkpoint) and after: the resumed steps continue from it.
+    assert steps[-4:] == [per_iteration * i for i in range(last + 1, last + 5)]
+    assert len(client.search_runs([client.get_run(run_id).info.experiment_id])) == 1

@@ -1,0 +1,46 @@
+"""`+experiment=ablation_prior` at smoke size: a parent run with a child per prior and the comparison."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from mlflow.tracking import MlflowClient
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+@pytest.mark.slow
+def test_ablation_prior_makes_a_parent_run_with_three_children_and_a_figure(tmp_path):
+    sweep_dir = tmp_path / "sweep"
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "orchestrator",
+            "+experiment=[smoke,ablation_prior]",
+            "algo.loop.iterations=4",
+            "progress=false",
+            f"hydra.sweep.dir={sweep_dir}",
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    info = json.loads((sweep_dir / "sweep.json").read_text())
+    client = MlflowClient(info["uri"])
+    parent = client.get_run(info["parent_run_id"])
+    assert parent.info.status == "FINISHED" and parent.data.tags["sweep_id"] == parent.info.run_id
+    children = client.search_runs(
+        [parent.info.experiment_id], filter_string=f"tags.mlflow.parentRunId = '{parent.info.run_id}'"
+    )
+    assert sorted(c.data.params["algo.vae.prior"] for c in children) == ["conditional", "learned", "standard_normal"]
+    assert all("eval/time_until_fall_mean" in c.data.metrics for c in children)
+    artifacts = {a.path for a in client.list_artifacts(parent.info.run_id)}
+    assert {"comparison.png", "comparison.md", "comparison.json"} <= artifacts
+    assert "| conditional | 1 |" in (sweep_dir / "comparison.md").read_text()
