@@ -13,15 +13,17 @@ setup:
 	$(BIN)/pip install $(TORCH)
 	$(BIN)/pip install -c constraints.txt -e '.[dev]'
 
-# The main job. Until the orchestrator's training entry point lands, it is the simulation benchmark.
+# The main job: the default ControlVAE run (see README).
 run:
-	$(BIN)/python -m orchestrator.bench sim
+	$(BIN)/python -m orchestrator
 
 test:
 	$(BIN)/python -m pytest -q
 
 bench:
 	$(BIN)/python -m orchestrator.bench sim --json --out bench-results/sim.json
+	$(BIN)/python -m orchestrator.bench learners --json --out bench-results/learners.json
+	$(BIN)/python -m orchestrator.bench pipeline --json --out bench-results/pipeline.json
 
 lint:
 	$(BIN)/ruff check .

@@ -62,11 +62,9 @@ from workers.learners.base import Learner
 from workers.learners.discriminator import DiscriminatorBatch, DiscriminatorConfig, DiscriminatorLearner
 from workers.learners.ppo import PPOBatch, PPOConfig, PPOLearner
 from workers.learners.task import TaskBatch, TaskConfig, TaskLearner
-from workers.learners.vae import VAEBatch, VAEConfig, VAELearner
+from workers.learners.vae import VAEBatch, VAEConfig, VAELearner, build_controller
 from workers.learners.world_model import WorldModelBatch, WorldModelConfig, WorldModelLearner
-from workers.models.vae import VAEController
 from workers.models.world_model import WorldModel
-from workers.sim.features import StateLayout
 
 NUM_BODIES, ACTION_DIM, AMP_OBS_DIM, DT = 15, 28, 105, 1.0 / 30.0
 LEARNERS = ("world_model", "vae", "discriminator", "ppo", "task")
@@ -171,19 +169,7 @@ def build_task(size: str, gen: torch.Generator) -> Case:
     else:
         c = TaskConfig(hidden=(128, 64), helper_hidden=(64, 64), rollout_steps=8, batch_size=64)
     v = _vae_config(size)
-    controller = VAEController(
-        StateLayout(NUM_BODIES).dim,
-        ACTION_DIM,
-        prior=v.prior,
-        latent_dim=v.latent_dim,
-        encoder_hidden=v.encoder_hidden,
-        policy=v.policy,
-        policy_hidden=v.policy_hidden,
-        num_experts=v.num_experts,
-        gate_hidden=v.gate_hidden,
-        act=v.activation,
-        sigma_p=v.sigma_p,
-    )
+    controller = build_controller(NUM_BODIES, ACTION_DIM, v)
     learner = TaskLearner(controller, frozen_world_model(_wm_hidden(size), gen), ACTION_DIM, c)
     n, t = c.batch_size, c.rollout_steps
     if c.task != "heading":  # pragma: no cover - the builder only makes heading batches
