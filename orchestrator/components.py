@@ -145,15 +145,15 @@ class VAEActor:
         self.world_model_version = weights.version
         return weights.version
 
-    def reference(self, batch: WindowBatch) -> np.ndarray:
-        """Reference body states [n, L+1, B, 13] that follow each window's first frame."""
-        steps = np.arange(batch.states.shape[1])
-        clip = np.repeat(batch.clip_id[:, None], len(steps), axis=1)
-        kin = self.library.state(clip.ravel(), (batch.frame[:, None] + steps).ravel())
-        return body_state.pack(kin).reshape(batch.states.shape)
-
     def train(self, batches: list[WindowBatch]) -> dict[str, float]:
-        metrics = [self.learner.update(VAEBatch(b.states, self.reference(b))) for b in batches]
+        """One update per window: its simulated start and the reference clip that follows its first frame."""
+        steps = self.learner.config.rollout_steps
+        metrics = [
+            self.learner.update(
+                VAEBatch(b.states, body_state.reference_windows(self.library, b.clip_id, b.frame, steps))
+            )
+            for b in batches
+        ]
         out = mean_metrics(metrics)
         out["world_model_version"] = float(self.world_model_version)
         return out

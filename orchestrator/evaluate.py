@@ -12,23 +12,29 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
-import matplotlib
+import numpy as np
+import torch
+from matplotlib.figure import Figure
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-import torch  # noqa: E402
-
-from orchestrator.components import load_world, sim_config  # noqa: E402
-from orchestrator.schema import Config  # noqa: E402
-from orchestrator.tracking.base import Tracker  # noqa: E402
-from workers.evaluation import time_until_fall, tracking_error  # noqa: E402
-from workers.learners.base import Weights  # noqa: E402
-from workers.learners.vae import build_controller  # noqa: E402
+from orchestrator.components import sim_config
+from orchestrator.schema import Config
+from orchestrator.tracking.base import Tracker
+from workers.evaluation import time_until_fall, tracking_error
+from workers.learners.base import Weights
+from workers.learners.vae import build_controller
+from workers.motion.library import MotionLibrary
+from workers.sim.character import Character
 
 
-def evaluate(cfg: Config, weights: Weights, tracker: Tracker, iteration: int, final: bool) -> dict[str, float]:
-    character, library = load_world(cfg)
+def evaluate(
+    cfg: Config,
+    character: Character,
+    library: MotionLibrary,
+    weights: Weights,
+    tracker: Tracker,
+    iteration: int,
+    final: bool,
+) -> dict[str, float]:
     controller = build_controller(character.num_bodies, character.num_actions, cfg.algo.vae)
     controller.load_state_dict(weights.state)
     controller.eval()
@@ -78,7 +84,8 @@ def _jsonable(x: Any) -> Any:
 
 
 def _plot(fall: dict[str, Any], track: dict[str, float], path: Path, title: str) -> None:
-    fig, (a, b) = plt.subplots(1, 2, figsize=(10, 3.5))
+    fig = Figure(figsize=(10, 3.5))
+    a, b = fig.subplots(1, 2)
     a.hist(np.asarray(fall["times"]), bins=20, color="tab:blue")
     a.set_xlabel("time until fall (s)")
     a.set_ylabel("rollouts")
@@ -88,4 +95,3 @@ def _plot(fall: dict[str, Any], track: dict[str, float], path: Path, title: str)
     fig.suptitle(title)
     fig.tight_layout()
     fig.savefig(path, dpi=100)
-    plt.close(fig)

@@ -16,7 +16,7 @@ from typing import Any
 from tqdm import tqdm
 
 from orchestrator import checkpoint
-from orchestrator.components import ReplayActor, RolloutActor, VAEActor, WorldModelActor
+from orchestrator.components import ReplayActor, RolloutActor, VAEActor, WorldModelActor, load_world
 from orchestrator.evaluate import evaluate
 from orchestrator.runtime.base import Resources, Runtime
 from orchestrator.schema import Config
@@ -61,6 +61,7 @@ class Trainer:
         self.weights_ref: Any = None
         self.pending: list[Any] = []
         self.restarts = 0
+        self.world = None
 
     # Phases ------------------------------------------------------------------
     def publish(self) -> None:
@@ -201,5 +202,7 @@ class Trainer:
         return {**last, **final}
 
     def evaluate(self, final: bool) -> dict[str, float]:
+        if self.world is None:  # the driver's own character and library, loaded once
+            self.world = load_world(self.cfg)
         weights = self.rt.get(self.rt.call(self.vae, "get_weights"))
-        return evaluate(self.cfg, weights, self.tracker, self.state.iteration, final)
+        return evaluate(self.cfg, *self.world, weights, self.tracker, self.state.iteration, final)

@@ -212,7 +212,5 @@ def validate(cfg: DictConfig | dict[str, Any]) -> Config:
         raise ConfigError(str(e)) from None
     try:
         return OmegaConf.to_object(structured)
-    except ConfigError:
-        raise
     except ValueError as e:
         raise ConfigError(_full_key(str(e))) from None

@@ -17,13 +17,10 @@ from collections import defaultdict
 from pathlib import Path
 from typing import Any
 
-import matplotlib
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-from hydra.experimental.callback import Callback  # noqa: E402
-from omegaconf import DictConfig  # noqa: E402
+import numpy as np
+from hydra.experimental.callback import Callback
+from matplotlib.figure import Figure
+from omegaconf import DictConfig
 
 SWEEP_FILE = "sweep.json"
 COMPARED = ("eval/time_until_fall_mean", "eval/tracking_error_mean")
@@ -122,7 +119,8 @@ def markdown_table(rows: list[dict[str, Any]], compare_by: str) -> str:
 def plot_comparison(rows: list[dict[str, Any]], compare_by: str, path: Path) -> None:
     groups = grouped(rows, compare_by)
     names = list(groups)
-    fig, axes = plt.subplots(1, 2, figsize=(9, 3.5))
+    fig = Figure(figsize=(9, 3.5))
+    axes = fig.subplots(1, 2)
     for ax, key, label in zip(axes, COMPARED, ("time until fall (s)", "tracking error (m)"), strict=True):
         means = [np.mean(groups[n][key]) if groups[n][key] else np.nan for n in names]
         stds = [np.std(groups[n][key]) if groups[n][key] else 0.0 for n in names]
@@ -133,4 +131,3 @@ def plot_comparison(rows: list[dict[str, Any]], compare_by: str, path: Path) -> 
         ax.set_xlabel(compare_by)
     fig.tight_layout()
     fig.savefig(path, dpi=100)
-    plt.close(fig)

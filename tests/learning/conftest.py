@@ -112,8 +112,7 @@ def reference_windows(library, trajectories: Trajectories, n: int, steps: int, r
     """Reference body states [n, steps + 1, B, 13] following random states of the trajectories."""
     t = rng.integers(trajectories.states.shape[0], size=n)
     env = rng.integers(trajectories.states.shape[1], size=n)
-    clip, frame = trajectories.clip_id[t, env], trajectories.frame[t, env]
-    return np.stack([body_state.pack(library.state(clip, frame + k)) for k in range(steps + 1)], axis=1)
+    return body_state.reference_windows(library, trajectories.clip_id[t, env], trajectories.frame[t, env], steps)
 
 
 VAE_STEPS = 8

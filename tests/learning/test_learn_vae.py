@@ -8,7 +8,7 @@ import torch
 
 from workers.learners.base import Schedule
 from workers.learners.vae import VAEBatch, VAEConfig, VAELearner
-from workers.models.body_state import pack
+from workers.models.body_state import reference_windows
 
 
 @pytest.mark.parametrize("prior", ["conditional", "standard_normal", "learned"])
@@ -46,9 +46,8 @@ def test_behaviour_cloning_objectives_learn_the_expert(objective, walk_run, traj
     for _ in range(150):
         pick = starts[rng.integers(len(starts), size=64)]
         window = trajectories.batch(pick, steps)
-        t = pick[:, :1] + np.arange(steps + 1)
         clip, frame = trajectories.clip_id[pick[:, 0], pick[:, 1]], trajectories.frame[pick[:, 0], pick[:, 1]]
-        reference = np.stack([pack(walk_run.state(clip, frame + k)) for k in range(t.shape[1])], axis=1)
+        reference = reference_windows(walk_run, clip, frame, steps)
         history.append(learner.update(VAEBatch(window.states, torch.as_tensor(reference), window.actions)))
     losses = np.array([h[key] for h in history])
     print(f"{objective}: {key} {losses[0]:.2f} -> {losses[-20:].mean():.2f}")

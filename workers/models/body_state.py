@@ -10,10 +10,15 @@ compares them), but differentiably.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 import torch
 
 from workers.types import KinState
+
+if TYPE_CHECKING:
+    from workers.motion.library import MotionLibrary
 
 POS, QUAT, LIN, ANG = slice(0, 3), slice(3, 7), slice(7, 10), slice(10, 13)
 BODY_STATE_SIZE = 13
@@ -22,6 +27,14 @@ BODY_STATE_SIZE = 13
 def pack(kin: KinState) -> np.ndarray:
     """The body state [N, B, 13] (float32) of a `KinState`."""
     return np.concatenate((kin.xpos, kin.xquat, kin.lin_vel, kin.ang_vel), axis=-1).astype(np.float32)
+
+
+def reference_windows(library: MotionLibrary, clip_id: np.ndarray, frame: np.ndarray, steps: int) -> np.ndarray:
+    """Reference body states [n, steps + 1, B, 13] of each clip from `frame` [n] on (looping clips wrap)."""
+    frames = np.asarray(frame)[:, None] + np.arange(steps + 1)
+    clips = np.broadcast_to(np.asarray(clip_id)[:, None], frames.shape)
+    kin = library.state(clips.ravel(), frames.ravel())
+    return pack(kin).reshape(frames.shape + (-1, BODY_STATE_SIZE))
 
 
 def quat_to_matrix(q: torch.Tensor) -> torch.Tensor:
