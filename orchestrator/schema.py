@@ -100,8 +100,15 @@ class LoopConfig:
     checkpoint_every: int = 50
     # Iterations between evaluations (and at the end); 0: only at the end.
     eval_every: int = 0
+    # Collection episodes end on a fall (a body other than the feet touching the ground) when true;
+    # ControlVAE only ends them on a tracking failure (head 0.5 m off for 1 s) or at a length cap.
+    end_on_fall: bool = True
+    # Cap on a collection episode's control steps (ControlVAE 512); 0: none.
+    max_episode_steps: int = 512
 
     def __post_init__(self) -> None:
+        if self.max_episode_steps < 0:
+            raise ConfigError(f"algo.loop.max_episode_steps must be non-negative, got {self.max_episode_steps}")
         for key in ("iterations", "collect_steps", "replay_capacity"):
             if getattr(self, key) < 1:
                 raise ConfigError(f"algo.loop.{key} must be at least 1, got {getattr(self, key)}")

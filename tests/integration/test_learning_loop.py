@@ -1,0 +1,61 @@
+"""The default ControlVAE loop learns: after a short local run the controller tracks the clips
+better in the simulator than the untrained one it started from.
+
+This is the whole service's learning test: collection, the replay buffer, both learners,
+weight publication and evaluation, at the default run's model and loop settings with fewer
+iterations and a smaller evaluation.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+from mlflow.tracking import MlflowClient
+
+from orchestrator.build import run
+from orchestrator.components import load_world, sim_config
+from orchestrator.schema import validate
+from workers.evaluation import tracking_error
+from workers.learners.vae import build_controller
+
+CONF = Path(__file__).resolve().parents[2] / "conf"
+
+OVERRIDES = [
+    "motion=walk",
+    "algo.loop.iterations=100",
+    "algo.loop.checkpoint_every=0",
+    "eval.fall_rollouts=8",
+    "eval.fall_max_seconds=5",
+    "eval.tracking_seconds=1.0",
+    "tracking=embedded",
+    "progress=false",
+]
+
+
+@pytest.mark.slow
+def test_default_loop_improves_tracking_in_the_simulator(tmp_path):
+    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+        cfg = validate(compose("config", overrides=[f"run_dir={tmp_path}", *OVERRIDES]))
+    character, library = load_world(cfg)
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(0)
+        untrained = build_controller(character.num_bodies, character.num_actions, cfg.algo.vae)
+    before = tracking_error(untrained, library, character, 1.0, sim_config(cfg), seed=cfg.seed)["mean"]
+
+    summary = run(cfg)
+    after = summary["eval/tracking_error_mean"]
+    client = MlflowClient(f"sqlite:///{tmp_path}/mlflow.db")
+    (r,) = client.search_runs(client.search_experiments()[0].experiment_id)
+    rec = [m.value for m in sorted(client.get_metric_history(r.info.run_id, "vae/rec"), key=lambda m: m.step)]
+    wm = [m.value for m in sorted(client.get_metric_history(r.info.run_id, "world_model/loss"), key=lambda m: m.step)]
+    print(
+        f"tracking error {before:.3f} -> {after:.3f} m; vae/rec {rec[0]:.1f} -> {rec[-1]:.1f}; "
+        f"world_model/loss {wm[0]:.3f} -> {wm[-1]:.3f}"
+    )
+    assert np.isfinite(after)
+    assert after < 0.75 * before
+    assert np.mean(rec[-5:]) < 0.85 * np.mean(rec[:5])
