@@ -18,7 +18,9 @@ _NUMPY = "__numpy__"
 
 def _encode(x: Any) -> Any:
     if isinstance(x, np.ndarray):
-        return {_NUMPY: torch.from_numpy(np.ascontiguousarray(x))}
+        # Arrays from Ray's object store are read-only; torch wants writable memory.
+        x = np.ascontiguousarray(x) if x.flags.writeable else np.array(x, order="C")
+        return {_NUMPY: torch.from_numpy(x)}
     if isinstance(x, np.generic):
         return x.item()
     if isinstance(x, dict):

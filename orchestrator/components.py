@@ -8,6 +8,9 @@ a learner takes a list of batches per call. None of them knows where it runs.
 
 from __future__ import annotations
 
+import os
+import time
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -40,7 +43,15 @@ def load_world(cfg: Config) -> tuple[Character, MotionLibrary]:
 
 
 def sim_config(cfg: Config) -> SimConfig:
+    """The simulator as evaluation runs it: the character's rates, falls detected."""
     return SimConfig(sim_hz=cfg.character.sim_hz, control_hz=cfg.character.control_hz)
+
+
+def collection_sim_config(cfg: Config) -> SimConfig:
+    """The simulator as the rollout workers run it: the loop's termination rules."""
+    loop = cfg.algo.loop
+    config = replace(sim_config(cfg), max_episode_steps=loop.max_episode_steps)
+    return config if loop.end_on_fall else replace(config, allowed_contacts=())
 
 
 def mean_metrics(metrics: list[dict[str, float]]) -> dict[str, float]:
@@ -56,6 +67,11 @@ def _seed(cfg: Config, offset: int) -> int:
     return cfg.seed * 1000 + offset
 
 
+def _incarnation() -> str:
+    """Tells one life of a component from the next: a restarted Ray actor is a new process."""
+    return f"{os.getpid()}-{time.time_ns()}"
+
+
 class RolloutActor:
     def __init__(self, cfg: Config, worker_id: int):
         torch.set_num_threads(cfg.runtime.torch_threads)
@@ -65,7 +81,7 @@ class RolloutActor:
             library,
             cfg.runtime.envs_per_worker,
             cfg.algo.vae,
-            sim_config(cfg),
+            collection_sim_config(cfg),
             seed=_seed(cfg, 100 + worker_id),
             worker_id=worker_id,
             prior_probability=cfg.algo.loop.prior_probability,
@@ -92,8 +108,9 @@ class RolloutActor:
 class ReplayActor(ReplayBuffer):
     def __init__(self, cfg: Config, num_bodies: int, action_dim: int):
         super().__init__(cfg.algo.loop.replay_capacity, num_bodies, action_dim, seed=_seed(cfg, 1))
+        self.incarnation = _incarnation()
 
-    def add_trajectory(self, trajectory: Trajectory) -> dict[str, int]:
+    def add_trajectory(self, trajectory: Trajectory) -> dict[str, Any]:
         """Store a trajectory; a summary for the loop (the trajectory itself stays here)."""
         self.add(trajectory)
         return {
@@ -101,6 +118,7 @@ class ReplayActor(ReplayBuffer):
             "version": int(trajectory.version),
             "episode_ends": int(trajectory.done.sum()),
             "size": len(self),
+            "incarnation": self.incarnation,
         }
 
     def sample_batches(self, count: int, size: int, length: int) -> list[WindowBatch]:
@@ -112,9 +130,14 @@ class WorldModelActor:
         torch.set_num_threads(cfg.runtime.torch_threads)
         torch.manual_seed(_seed(cfg, 2))
         self.learner = WorldModelLearner(num_bodies, action_dim, 1.0 / cfg.character.control_hz, cfg.algo.world_model)
+        self.incarnation = _incarnation()
 
-    def train(self, batches: list[WindowBatch]) -> dict[str, float]:
-        return mean_metrics([self.learner.update(WorldModelBatch(b.states, b.actions)) for b in batches])
+    def train(self, batches: list[WindowBatch]) -> dict[str, Any]:
+        """Mean metrics of one update per batch, the weights' version, and the actor's incarnation."""
+        out: dict[str, Any] = mean_metrics([self.learner.update(WorldModelBatch(b.states, b.actions)) for b in batches])
+        out["version"] = float(self.learner.version)
+        out["incarnation"] = self.incarnation
+        return out
 
     def get_weights(self) -> Weights:
         return self.learner.get_weights()
@@ -139,13 +162,14 @@ class VAEActor:
         )
         self.learner = VAELearner(num_bodies, action_dim, cfg.algo.vae, world_model=world_model, seed=_seed(cfg, 4))
         self.world_model_version = -1
+        self.incarnation = _incarnation()
 
     def set_world_model_weights(self, weights: Weights) -> int:
         self.learner.set_world_model_weights(weights)
         self.world_model_version = weights.version
         return weights.version
 
-    def train(self, batches: list[WindowBatch]) -> dict[str, float]:
+    def train(self, batches: list[WindowBatch]) -> dict[str, Any]:
         """One update per window: its simulated start and the reference clip that follows its first frame."""
         steps = self.learner.config.rollout_steps
         metrics = [
@@ -154,8 +178,10 @@ class VAEActor:
             )
             for b in batches
         ]
-        out = mean_metrics(metrics)
+        out: dict[str, Any] = mean_metrics(metrics)
         out["world_model_version"] = float(self.world_model_version)
+        out["version"] = float(self.learner.version)
+        out["incarnation"] = self.incarnation
         return out
 
     def get_weights(self) -> Weights:

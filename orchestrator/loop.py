@@ -8,6 +8,7 @@ update, so on Ray they run while the learners work; locally they run in order.
 
 from __future__ import annotations
 
+import logging
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -21,6 +22,8 @@ from orchestrator.evaluate import evaluate
 from orchestrator.runtime.base import Resources, Runtime
 from orchestrator.schema import Config
 from orchestrator.tracking.base import Tracker
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -45,7 +48,7 @@ class Trainer:
         r = cfg.runtime
         worker_res = Resources(cpus=r.worker_cpus, max_restarts=r.max_restarts)
         learner_res = Resources(cpus=r.learner_cpus, gpus=r.learner_gpus, max_restarts=r.max_restarts)
-        replay_res = Resources(cpus=0.5, max_restarts=0)
+        replay_res = Resources(cpus=0.5, max_restarts=r.max_restarts)
         runtime.reserve([replay_res, learner_res, learner_res] + [worker_res] * r.rollout_workers)
         self.replay = runtime.spawn(ReplayActor, cfg, num_bodies, action_dim, name="replay", resources=replay_res)
         self.world_model = runtime.spawn(
@@ -61,6 +64,10 @@ class Trainer:
         self.weights_ref: Any = None
         self.pending: list[Any] = []
         self.restarts = 0
+        # The stateful components' current lives; one that comes back from a crash is reloaded
+        # from the last checkpoint (`recover`).
+        self.incarnations: dict[str, str | None] = {"replay": None, "world_model": None, "vae": None}
+        self.recoveries = 0
         self.world = None
 
     # Phases ------------------------------------------------------------------
@@ -70,8 +77,25 @@ class Trainer:
         self.rt.call(self.vae, "set_world_model_weights", wm)
         weights = self.rt.get(self.rt.call(self.vae, "get_weights"))
         if weights.version != self.weights_version:
+            if weights.version < self.weights_version:  # the learner was rolled back: every worker refreshes
+                self.worker_versions = [-1] * len(self.workers)
             self.weights_ref = self.rt.put(weights)
             self.weights_version = weights.version
+
+    def check_alive(self, name: str, incarnation: str) -> None:
+        """Reload a component that came back from a crash (a new incarnation) from the last checkpoint."""
+        known = self.incarnations[name]
+        self.incarnations[name] = incarnation
+        if known is None or known == incarnation:
+            return
+        self.recoveries += 1
+        path = checkpoint.latest(self.ckpt_dir)
+        if path is None:
+            log.warning("%s restarted before the first checkpoint: it starts over", name)
+            return
+        handle = {"replay": self.replay, "world_model": self.world_model, "vae": self.vae}[name]
+        self.rt.get(self.rt.call(handle, "load_state_dict", checkpoint.load(path)[name]))
+        log.warning("%s restarted: reloaded from %s", name, path.name)
 
     def launch_collection(self) -> None:
         loop = self.cfg.algo.loop
@@ -93,6 +117,8 @@ class Trainer:
         # Trajectories go from the workers to the replay actor directly; only their summaries come back.
         infos = rt.get([rt.call(self.replay, "add_trajectory", f) for f in self.pending])
         t_sample = time.perf_counter() - t0
+        for info in infos:
+            self.check_alive("replay", info.pop("incarnation"))
         collected = sum(i["transitions"] for i in infos)
         s.samples += collected
         replay_size = infos[-1]["size"]
@@ -119,6 +145,7 @@ class Trainer:
             wm_metrics = rt.call(self.world_model, "train", wm_batches)
             vae_metrics = rt.call(self.vae, "train", vae_batches)
             for prefix, m in (("world_model", rt.get(wm_metrics)), ("vae", rt.get(vae_metrics))):
+                self.check_alive(prefix, m.pop("incarnation"))
                 metrics.update({f"{prefix}/{k}": v for k, v in m.items()})
             s.world_model_updates += n_wm
             s.vae_updates += n_vae
@@ -146,6 +173,7 @@ class Trainer:
         )
         ends = sum(i["episode_ends"] for i in infos)
         metrics["rollout/worker_restarts"] = float(self.restarts)
+        metrics["loop/recoveries"] = float(self.recoveries)
         metrics["rollout/episode_ends"] = float(ends)
         metrics["rollout/mean_episode_steps"] = collected / max(ends, 1)
         return metrics

@@ -50,3 +50,31 @@ def test_ray_run_matches_local_and_survives_a_killed_worker(smoke):
     expected = [local.step() for _ in range(3)]
     for key in ("world_model/loss", "vae/rec", "replay/size"):
         assert [m[key] for m in first] == [m[key] for m in expected], key
+
+
+def test_a_killed_learner_and_replay_come_back_from_the_last_checkpoint(smoke):
+    cfg = smoke("runtime=ray", "runtime.rollout_workers=1", "algo.loop.checkpoint_every=0")
+    character, _ = load_world(cfg)
+    rt = build_runtime(cfg)
+    try:
+        trainer = Trainer(cfg, rt, Recorder(), character.num_bodies, character.num_actions)
+        trainer.publish()
+        trainer.launch_collection()
+        for _ in range(4):
+            before = trainer.step()
+        assert before["world_model/version"] > 0 and before["loop/recoveries"] == 0
+        trainer.save()
+        saved_version, saved_size = before["world_model/version"], before["replay/size"]
+        rt.kill(trainer.world_model)
+        after = trainer.step()
+        # The retried update ran on a fresh learner; the loop saw the new life and reloaded the checkpoint.
+        assert after["loop/recoveries"] == 1
+        after = trainer.step()
+        assert after["world_model/version"] > saved_version  # continues from the checkpoint, not from zero
+        rt.kill(trainer.replay)
+        after = trainer.step()
+        assert after["loop/recoveries"] == 2
+        assert after["replay/size"] >= saved_size  # the buffer came back with what the checkpoint held
+        assert trainer.step()["world_model/loss"] > 0
+    finally:
+        rt.shutdown()
