@@ -3,8 +3,11 @@
 `SweepCallback` (registered in conf/config.yaml) opens the parent run when the
 multirun starts and writes `sweep.json` into the sweep directory; each job reads
 it (`parent_of`) to log into the same store as a child. Without `tracking.uri` the
-store is one SQLite file in the sweep directory, which the basic launcher's
-sequential jobs share safely (parallel launchers need a tracking server).
+store is one SQLite file in the sweep directory. The basic launcher's sequential
+jobs write it directly; when a launcher runs jobs in parallel (e.g.
+`hydra/launcher=joblib`), SQLite would lock under the concurrent writers, so the
+callback starts an MLflow server on 127.0.0.1 in front of that file for the
+sweep's duration and the jobs log through it.
 When the multirun ends, the children's final metrics are gathered into a table
 (CSV and Markdown) and a figure, logged to the parent run.
 """
@@ -23,11 +26,18 @@ from matplotlib.figure import Figure
 from omegaconf import DictConfig
 
 SWEEP_FILE = "sweep.json"
+SEQUENTIAL_LAUNCHER = "hydra._internal.core_plugins.basic_launcher.BasicLauncher"
 COMPARED = ("eval/time_until_fall_mean", "eval/tracking_error_mean")
 
 
 def store_uri(sweep_dir: Path, uri: str | None) -> str:
     return uri or f"sqlite:///{(sweep_dir / 'mlflow.db').resolve()}"
+
+
+def runs_in_parallel(config: DictConfig) -> bool:
+    """Whether the multirun's launcher may run jobs at once (anything but Hydra's basic launcher)."""
+    launcher = config.hydra.get("launcher") or {}
+    return launcher.get("_target_", SEQUENTIAL_LAUNCHER) != SEQUENTIAL_LAUNCHER
 
 
 def parent_of(sweep_dir: str | Path) -> dict[str, str] | None:
@@ -41,6 +51,11 @@ class SweepCallback(Callback):
         self.compare_by = compare_by
         self.tracker = None
         self.sweep_dir: Path | None = None
+        self.server = None
+
+    def __getstate__(self) -> dict[str, Any]:
+        # Parallel launchers pickle the callbacks into each job; the parent run and the server stay here.
+        return {**self.__dict__, "tracker": None, "server": None}
 
     def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
         from orchestrator.tracking.mlflow import MlflowTracker
@@ -49,7 +64,16 @@ class SweepCallback(Callback):
             return
         self.sweep_dir = Path(config.hydra.sweep.dir)
         self.sweep_dir.mkdir(parents=True, exist_ok=True)
-        uri = store_uri(self.sweep_dir, config.tracking.uri)
+        store = store_uri(self.sweep_dir, config.tracking.uri)
+        uri = store
+        if config.tracking.uri is None and runs_in_parallel(config):
+            from orchestrator.tracking.server import start_local_server
+
+            self.server = start_local_server(
+                store, self.sweep_dir / "mlartifacts", log_path=self.sweep_dir / "mlflow-server.log"
+            )
+            uri = self.server.uri
+            print(f"sweep: parallel jobs log through the tracking server at {uri}")
         experiment = config.tracking.experiment or config.preset
         self.tracker = MlflowTracker(
             uri=uri,
@@ -61,7 +85,8 @@ class SweepCallback(Callback):
         self.tracker.set_tags({"sweep_id": self.tracker.run_id})
         params = dict(config.hydra.sweeper.get("params") or {})
         self.tracker.log_params({f"sweep.{k}": str(v) for k, v in params.items()})
-        info = {"parent_run_id": self.tracker.run_id, "uri": uri, "experiment": experiment}
+        # `uri` is what the jobs log to; `store` is where the runs stay once the sweep is over.
+        info = {"parent_run_id": self.tracker.run_id, "uri": uri, "store": store, "experiment": experiment}
         (self.sweep_dir / SWEEP_FILE).write_text(json.dumps(info))
 
     def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
@@ -70,7 +95,7 @@ class SweepCallback(Callback):
         from orchestrator.tracking.query import child_runs
 
         self.tracker.flush()
-        children = child_runs(store_uri(self.sweep_dir, config.tracking.uri), self.tracker.run_id)
+        children = child_runs(self.tracker.uri, self.tracker.run_id)
         rows = child_results(children, self.compare_by)
         if rows:
             self.tracker.log_dict({"rows": rows}, "comparison.json")
@@ -82,6 +107,14 @@ class SweepCallback(Callback):
             plot_comparison(rows, self.compare_by, png)
             self.tracker.log_artifact(str(png))
         self.tracker.close("FINISHED")
+        store = store_uri(self.sweep_dir, config.tracking.uri)
+        look = f"mlflow ui --backend-store-uri {store} --host 127.0.0.1"
+        if self.server is not None:
+            self.server.stop()
+            self.server = None
+            look += f" --artifacts-destination {(self.sweep_dir / 'mlartifacts').resolve()}"
+        where = f"MLflow: {store}" if store.startswith("http") else f"MLflow UI: {look}"
+        print(f"{where}  (sweep {self.tracker.run_id})")
 
 
 def child_results(children: list[dict[str, Any]], compare_by: str) -> list[dict[str, Any]]:

@@ -44,3 +44,42 @@ def test_ablation_prior_makes_a_parent_run_with_three_children_and_a_figure(tmp_
     artifacts = {a.path for a in client.list_artifacts(parent.info.run_id)}
     assert {"comparison.png", "comparison.md", "comparison.json"} <= artifacts
     assert "| conditional | 1 |" in (sweep_dir / "comparison.md").read_text()
+
+
+@pytest.mark.slow
+def test_parallel_sweep_logs_through_a_local_tracking_server(tmp_path):
+    """hydra/launcher=joblib runs the points at once; they share one SQLite store through a server on 127.0.0.1."""
+    sweep_dir = tmp_path / "sweep"
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "orchestrator",
+            "+experiment=[smoke,ablation_prior]",
+            "algo.loop.iterations=4",
+            "progress=false",
+            "hydra/launcher=joblib",
+            "hydra.launcher.n_jobs=2",
+            f"hydra.sweep.dir={sweep_dir}",
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    info = json.loads((sweep_dir / "sweep.json").read_text())
+    assert info["uri"].startswith("http://127.0.0.1:") and info["store"].startswith("sqlite:///")
+    client = MlflowClient(info["store"])  # the server is gone; the store stays
+    parent = client.get_run(info["parent_run_id"])
+    assert parent.info.status == "FINISHED"
+    children = client.search_runs(
+        [parent.info.experiment_id], filter_string=f"tags.mlflow.parentRunId = '{parent.info.run_id}'"
+    )
+    assert sorted(c.data.params["algo.vae.prior"] for c in children) == ["conditional", "learned", "standard_normal"]
+    assert all(c.info.status == "FINISHED" and "eval/tracking_error_mean" in c.data.metrics for c in children)
+    spans = sorted((c.info.start_time, c.info.end_time) for c in children)
+    assert spans[1][0] < spans[0][1], "the first two points should have run at the same time"
+    uploaded = {p.name for p in (sweep_dir / "mlartifacts").rglob("*")}
+    assert {"comparison.png", "config.json"} <= uploaded  # artifacts went through the server's proxy
+    assert "--artifacts-destination" in proc.stdout
