@@ -121,8 +121,8 @@ class ReplayActor(ReplayBuffer):
             "incarnation": self.incarnation,
         }
 
-    def sample_batches(self, count: int, size: int, length: int, first_state_only: bool = False) -> list[WindowBatch]:
-        return [self.sample_windows(size, length, first_state_only) for _ in range(count)]
+    def sample_batches(self, count: int, size: int, length: int) -> list[WindowBatch]:
+        return [self.sample_windows(size, length) for _ in range(count)]
 
 
 class WorldModelActor:

@@ -141,8 +141,7 @@ class Trainer:
             )
             n_vae, s.vae_credit = self.updates_due(collected, vae.batch_size, vae.rollout_steps, s.vae_credit)
             wm_batches = rt.call(self.replay, "sample_batches", n_wm, wm.batch_size, wm.rollout_steps)
-            # The VAE learner simulates its rollouts through the world model: it needs only the starts.
-            vae_batches = rt.call(self.replay, "sample_batches", n_vae, vae.batch_size, vae.rollout_steps, True)
+            vae_batches = rt.call(self.replay, "sample_batches", n_vae, vae.batch_size, vae.rollout_steps)
             wm_metrics = rt.call(self.world_model, "train", wm_batches)
             vae_metrics = rt.call(self.vae, "train", vae_batches)
             for prefix, m in (("world_model", rt.get(wm_metrics)), ("vae", rt.get(vae_metrics))):

@@ -188,13 +188,8 @@ class ReplayBuffer:
             slots[:, k] = self._next[slots[:, k - 1]]
         return slots
 
-    def sample_windows(self, n: int, length: int, first_state_only: bool = False) -> WindowBatch:
-        """n windows of `length` consecutive transitions, drawn uniformly (with replacement) among the valid ones.
-
-        With `first_state_only`, `states` holds only each window's first state [n, 1, B, 13]: the same
-        draw, for a consumer that simulates the rest itself (the ControlVAE VAE learner), at
-        1 / (length + 1) of the bytes.
-        """
+    def sample_windows(self, n: int, length: int) -> WindowBatch:
+        """n windows of `length` consecutive transitions, drawn uniformly (with replacement) among the valid ones."""
         starts = self.valid_starts(length)
         if len(starts) == 0:
             raise ValueError(
@@ -203,10 +198,7 @@ class ReplayBuffer:
             )
         starts = starts[self.rng.integers(len(starts), size=n)]
         slots = self.window_slots(starts, length)
-        if first_state_only:
-            states = self._states[slots[:, :1]]
-        else:
-            states = np.concatenate((self._states[slots], self._next_states[slots[:, -1:]]), axis=1)
+        states = np.concatenate((self._states[slots], self._next_states[slots[:, -1:]]), axis=1)
         return WindowBatch(
             states=states,
             actions=self._actions[slots],

@@ -178,21 +178,6 @@ def test_state_dict_round_trip_gives_identical_samples():
     np.testing.assert_array_equal(buf.sample_windows(32, 8).states, other.sample_windows(32, 8).states)
 
 
-def test_first_state_only_is_the_same_draw_at_a_fraction_of_the_bytes():
-    full, starts = ReplayBuffer(60, B, A, seed=3), ReplayBuffer(60, B, A, seed=3)
-    w = FakeWorker(2, 3, p_done=0.1, seed=5)
-    for _ in range(4):
-        traj = w.collect(5)
-        full.add(traj)
-        starts.add(copy.deepcopy(traj))
-    for _ in range(3):
-        a, b = full.sample_windows(16, 6), starts.sample_windows(16, 6, first_state_only=True)
-        assert b.states.shape == (16, 1, B, 13)
-        np.testing.assert_array_equal(a.states[:, :1], b.states)
-        np.testing.assert_array_equal(a.clip_id, b.clip_id)
-        np.testing.assert_array_equal(a.frame, b.frame)
-
-
 def test_sample_states_and_stats():
     buf = ReplayBuffer(100, B, A)
     w = FakeWorker(0, 2)
