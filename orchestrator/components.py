@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from orchestrator.schema import Config
-from workers.learners.base import Weights
+from workers.learners.base import Learner, Weights
 from workers.learners.vae import VAEBatch, VAELearner
 from workers.learners.world_model import WorldModelBatch, WorldModelLearner
 from workers.models import body_state
@@ -125,16 +125,17 @@ class ReplayActor(ReplayBuffer):
         return [self.sample_windows(size, length) for _ in range(count)]
 
 
-class WorldModelActor:
-    def __init__(self, cfg: Config, num_bodies: int, action_dim: int):
-        torch.set_num_threads(cfg.runtime.torch_threads)
-        torch.manual_seed(_seed(cfg, 2))
-        self.learner = WorldModelLearner(num_bodies, action_dim, 1.0 / cfg.character.control_hz, cfg.algo.world_model)
+class LearnerActor:
+    """What both learner actors share: weights, checkpoints, and the report every `train` returns."""
+
+    learner: Learner
+
+    def __init__(self) -> None:
         self.incarnation = _incarnation()
 
-    def train(self, batches: list[WindowBatch]) -> dict[str, Any]:
-        """Mean metrics of one update per batch, the weights' version, and the actor's incarnation."""
-        out: dict[str, Any] = mean_metrics([self.learner.update(WorldModelBatch(b.states, b.actions)) for b in batches])
+    def report(self, metrics: list[dict[str, float]]) -> dict[str, Any]:
+        """Mean metrics of the updates, the weights' version, and this actor's incarnation."""
+        out: dict[str, Any] = mean_metrics(metrics)
         out["version"] = float(self.learner.version)
         out["incarnation"] = self.incarnation
         return out
@@ -149,10 +150,22 @@ class WorldModelActor:
         self.learner.load_state_dict(state)
 
 
-class VAEActor:
+class WorldModelActor(LearnerActor):
+    def __init__(self, cfg: Config, num_bodies: int, action_dim: int):
+        super().__init__()
+        torch.set_num_threads(cfg.runtime.torch_threads)
+        torch.manual_seed(_seed(cfg, 2))
+        self.learner = WorldModelLearner(num_bodies, action_dim, 1.0 / cfg.character.control_hz, cfg.algo.world_model)
+
+    def train(self, batches: list[WindowBatch]) -> dict[str, Any]:
+        return self.report([self.learner.update(WorldModelBatch(b.states, b.actions)) for b in batches])
+
+
+class VAEActor(LearnerActor):
     """The VAE learner with a frozen copy of the world model and the library it draws references from."""
 
     def __init__(self, cfg: Config, num_bodies: int, action_dim: int):
+        super().__init__()
         torch.set_num_threads(cfg.runtime.torch_threads)
         torch.manual_seed(_seed(cfg, 3))
         _, self.library = load_world(cfg)
@@ -162,7 +175,6 @@ class VAEActor:
         )
         self.learner = VAELearner(num_bodies, action_dim, cfg.algo.vae, world_model=world_model, seed=_seed(cfg, 4))
         self.world_model_version = -1
-        self.incarnation = _incarnation()
 
     def set_world_model_weights(self, weights: Weights) -> int:
         self.learner.set_world_model_weights(weights)
@@ -178,14 +190,7 @@ class VAEActor:
             )
             for b in batches
         ]
-        out: dict[str, Any] = mean_metrics(metrics)
-        out["world_model_version"] = float(self.world_model_version)
-        out["version"] = float(self.learner.version)
-        out["incarnation"] = self.incarnation
-        return out
-
-    def get_weights(self) -> Weights:
-        return self.learner.get_weights()
+        return {**self.report(metrics), "world_model_version": float(self.world_model_version)}
 
     def state_dict(self) -> dict[str, Any]:
         return {"learner": self.learner.state_dict(), "world_model": self.learner.world_model.state_dict()}

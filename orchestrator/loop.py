@@ -65,7 +65,7 @@ class Trainer:
         self.pending: list[Any] = []
         self.restarts = 0
         # The stateful components' current lives; one that comes back from a crash is reloaded
-        # from the last checkpoint (`recover`).
+        # from the last checkpoint (`check_alive`).
         self.incarnations: dict[str, str | None] = {"replay": None, "world_model": None, "vae": None}
         self.recoveries = 0
         self.world = None

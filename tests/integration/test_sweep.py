@@ -13,24 +13,17 @@ from mlflow.tracking import MlflowClient
 ROOT = Path(__file__).resolve().parents[2]
 
 
+def run_sweep(sweep_dir: Path, *overrides: str) -> subprocess.CompletedProcess:
+    """The prior ablation at smoke size, four iterations a point, through the CLI."""
+    command = [sys.executable, "-m", "orchestrator", "+experiment=[smoke,ablation_prior]", "algo.loop.iterations=4"]
+    command += ["progress=false", f"hydra.sweep.dir={sweep_dir}", *overrides]
+    return subprocess.run(command, cwd=ROOT, capture_output=True, text=True, timeout=600)
+
+
 @pytest.mark.slow
 def test_ablation_prior_makes_a_parent_run_with_three_children_and_a_figure(tmp_path):
     sweep_dir = tmp_path / "sweep"
-    proc = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "orchestrator",
-            "+experiment=[smoke,ablation_prior]",
-            "algo.loop.iterations=4",
-            "progress=false",
-            f"hydra.sweep.dir={sweep_dir}",
-        ],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
+    proc = run_sweep(sweep_dir)
     assert proc.returncode == 0, proc.stderr[-3000:]
     info = json.loads((sweep_dir / "sweep.json").read_text())
     client = MlflowClient(info["uri"])
@@ -50,23 +43,7 @@ def test_ablation_prior_makes_a_parent_run_with_three_children_and_a_figure(tmp_
 def test_parallel_sweep_logs_through_a_local_tracking_server(tmp_path):
     """hydra/launcher=joblib runs the points at once; they share one SQLite store through a server on 127.0.0.1."""
     sweep_dir = tmp_path / "sweep"
-    proc = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "orchestrator",
-            "+experiment=[smoke,ablation_prior]",
-            "algo.loop.iterations=4",
-            "progress=false",
-            "hydra/launcher=joblib",
-            "hydra.launcher.n_jobs=2",
-            f"hydra.sweep.dir={sweep_dir}",
-        ],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
+    proc = run_sweep(sweep_dir, "hydra/launcher=joblib", "hydra.launcher.n_jobs=2")
     assert proc.returncode == 0, proc.stderr[-3000:]
     info = json.loads((sweep_dir / "sweep.json").read_text())
     assert info["uri"].startswith("http://127.0.0.1:") and info["store"].startswith("sqlite:///")
