@@ -88,7 +88,7 @@ def run(cfg: Config, parent_run_id: str | None = None) -> dict[str, float]:
     runtime = build_runtime(cfg)
     status = "FAILED"
     try:
-        trainer = Trainer(cfg, runtime, tracker, character.num_bodies, character.num_actions)
+        trainer = Trainer(cfg, runtime, tracker, character)
         if resume_from is not None:
             trainer.restore(resume_from)
             print(f"resumed from {resume_from} at iteration {trainer.state.iteration}", file=sys.stderr)

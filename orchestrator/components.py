@@ -63,29 +63,33 @@ def mean_metrics(metrics: list[dict[str, float]]) -> dict[str, float]:
     return out
 
 
-def _seed(cfg: Config, offset: int) -> int:
+def seed_of(cfg: Config, offset: int) -> int:
     return cfg.seed * 1000 + offset
 
 
-def _incarnation() -> str:
+def incarnation() -> str:
     """Tells one life of a component from the next: a restarted Ray actor is a new process."""
     return f"{os.getpid()}-{time.time_ns()}"
 
 
 class RolloutActor:
+    """A rollout worker running the policy of the config's method (`Method.make_policy`)."""
+
     def __init__(self, cfg: Config, worker_id: int):
+        from orchestrator.algos import method_class
+
         torch.set_num_threads(cfg.runtime.torch_threads)
         character, library = load_world(cfg)
+        method = method_class(cfg.algo._target_)
         self.worker = RolloutWorker(
             character,
             library,
             cfg.runtime.envs_per_worker,
-            cfg.algo.vae,
-            collection_sim_config(cfg),
-            seed=_seed(cfg, 100 + worker_id),
+            method.make_policy(cfg, character),
+            method.sim_config(cfg),
+            seed=seed_of(cfg, 100 + worker_id),
             worker_id=worker_id,
-            prior_probability=cfg.algo.loop.prior_probability,
-            action_noise=cfg.algo.vae.action_noise,
+            recorders=method.make_recorders(cfg, character),
         )
 
     def set_weights(self, weights: Weights) -> int:
@@ -107,8 +111,8 @@ class RolloutActor:
 
 class ReplayActor(ReplayBuffer):
     def __init__(self, cfg: Config, num_bodies: int, action_dim: int):
-        super().__init__(cfg.algo.loop.replay_capacity, num_bodies, action_dim, seed=_seed(cfg, 1))
-        self.incarnation = _incarnation()
+        super().__init__(cfg.algo.loop.replay_capacity, num_bodies, action_dim, seed=seed_of(cfg, 1))
+        self.incarnation = incarnation()
 
     def add_trajectory(self, trajectory: Trajectory) -> dict[str, Any]:
         """Store a trajectory; a summary for the loop (the trajectory itself stays here)."""
@@ -131,7 +135,7 @@ class LearnerActor:
     learner: Learner
 
     def __init__(self) -> None:
-        self.incarnation = _incarnation()
+        self.incarnation = incarnation()
 
     def report(self, metrics: list[dict[str, float]]) -> dict[str, Any]:
         """Mean metrics of the updates, the weights' version, and this actor's incarnation."""
@@ -154,7 +158,7 @@ class WorldModelActor(LearnerActor):
     def __init__(self, cfg: Config, num_bodies: int, action_dim: int):
         super().__init__()
         torch.set_num_threads(cfg.runtime.torch_threads)
-        torch.manual_seed(_seed(cfg, 2))
+        torch.manual_seed(seed_of(cfg, 2))
         self.learner = WorldModelLearner(num_bodies, action_dim, 1.0 / cfg.character.control_hz, cfg.algo.world_model)
 
     def train(self, batches: list[WindowBatch]) -> dict[str, Any]:
@@ -167,13 +171,13 @@ class VAEActor(LearnerActor):
     def __init__(self, cfg: Config, num_bodies: int, action_dim: int):
         super().__init__()
         torch.set_num_threads(cfg.runtime.torch_threads)
-        torch.manual_seed(_seed(cfg, 3))
+        torch.manual_seed(seed_of(cfg, 3))
         _, self.library = load_world(cfg)
         wm = cfg.algo.world_model
         world_model = WorldModel(
             num_bodies, action_dim, wm.hidden, wm.activation, 1.0 / cfg.character.control_hz, wm.integrator
         )
-        self.learner = VAELearner(num_bodies, action_dim, cfg.algo.vae, world_model=world_model, seed=_seed(cfg, 4))
+        self.learner = VAELearner(num_bodies, action_dim, cfg.algo.vae, world_model=world_model, seed=seed_of(cfg, 4))
         self.world_model_version = -1
 
     def set_world_model_weights(self, weights: Weights) -> int:

@@ -1,9 +1,12 @@
-"""Evaluation in the loop: the papers' protocols on the current VAE weights, as metrics, JSON and plots.
+"""Evaluation in the loop: the papers' protocols on the current weights, as metrics, JSON and plots.
 
 - time-until-fall (PhysicsVAE Fig. 9): one standing start, z from the prior every
   control step, `eval.fall_rollouts` rollouts capped at `eval.fall_max_seconds`.
 - tracking error (ControlVAE Fig. 14): each clip tracked with the posterior for
   `eval.tracking_seconds`; mean body-position error relative to the root.
+- pose error after dynamic time warping (AMP Eq. 10, Table 3), for PPO policies:
+  `eval.pose_episodes` episodes of up to `eval.pose_seconds`, with a figure of the
+  error over time.
 """
 
 from __future__ import annotations
@@ -20,13 +23,15 @@ from orchestrator.components import sim_config
 from orchestrator.schema import Config
 from orchestrator.tracking.base import Tracker
 from workers.evaluation import time_until_fall, tracking_error
+from workers.imitation_eval import pose_error_episodes
 from workers.learners.base import Weights
 from workers.learners.vae import build_controller
 from workers.motion.library import MotionLibrary
+from workers.policies import GaussianPolicy
 from workers.sim.character import Character
 
 
-def evaluate(
+def evaluate_controller(
     cfg: Config,
     character: Character,
     library: MotionLibrary,
@@ -92,6 +97,54 @@ def _plot(fall: dict[str, Any], track: dict[str, float], path: Path, title: str)
     clips = sorted(k for k in track if k != "mean")
     b.barh(clips, [track[k] for k in clips], color="tab:orange")
     b.set_xlabel("tracking error (m)")
+    fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+
+
+def evaluate_imitation(
+    cfg: Config,
+    character: Character,
+    library: MotionLibrary,
+    policy: GaussianPolicy,
+    tracker: Tracker,
+    iteration: int,
+    final: bool,
+) -> dict[str, float]:
+    """AMP's pose error after DTW (Table 3) for a PPO policy's deterministic actions, with its figure."""
+    pose = pose_error_episodes(
+        policy.mean_action,
+        character,
+        library,
+        num_episodes=cfg.eval.pose_episodes,
+        max_seconds=cfg.eval.pose_seconds,
+        sim_config=sim_config(cfg),
+        seed=cfg.seed,
+    )
+    metrics = {
+        "eval/pose_error_dtw": pose["dtw"],
+        "eval/pose_error_per_frame": pose["per_frame"],
+        "eval/episode_seconds": pose["seconds"],
+    }
+    name = "final" if final else f"iter-{iteration:07d}"
+    tracker.log_dict(_jsonable({"iteration": iteration, "policy_version": policy.version, **pose}), f"eval/{name}.json")
+    with tempfile.TemporaryDirectory() as tmp:
+        png = Path(tmp) / f"pose-{name}.png"
+        _plot_pose(pose, png, f"policy version {policy.version}")
+        tracker.log_artifact(str(png), "eval")
+    return metrics
+
+
+def _plot_pose(pose: dict[str, Any], path: Path, title: str) -> None:
+    fig = Figure(figsize=(10, 3.5))
+    a, b = fig.subplots(1, 2)
+    a.plot(pose["curve_t"], pose["curve"], color="tab:blue")
+    a.set_xlabel("time (s)")
+    a.set_ylabel("pose error after DTW (m)")
+    a.set_title(f"mean {pose['dtw']:.3f} m (per frame {pose['per_frame']:.3f} m)", fontsize=9)
+    b.hist([e["seconds"] for e in pose["episodes"]], bins=20, color="tab:orange")
+    b.set_xlabel("episode length (s)")
+    b.set_ylabel("episodes")
     fig.suptitle(title)
     fig.tight_layout()
     fig.savefig(path, dpi=100)

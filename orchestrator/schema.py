@@ -15,10 +15,14 @@ from typing import Any
 from hydra.core.config_store import ConfigStore
 from omegaconf import DictConfig, OmegaConf
 
+from workers.learners.discriminator import DiscriminatorConfig
+from workers.learners.ppo import PPOConfig
 from workers.learners.vae import VAEConfig
 from workers.learners.world_model import WorldModelConfig
 from workers.motion.errors import ClipError
 from workers.motion.formats import resolve
+from workers.rewards import DEFAULT_WEIGHTS as IMITATION_WEIGHTS
+from workers.rewards import IMITATION_TERMS
 
 LOCOMOTION = [
     "humanoid3d_walk",
@@ -119,16 +123,58 @@ class LoopConfig:
 
 
 @dataclass
-class AlgoConfig:
-    # The method; ControlVAE (world model + VAE) is the one the loop runs today.
-    name: str = "controlvae"
-    world_model: WorldModelConfig = field(default_factory=WorldModelConfig)
-    vae: VAEConfig = field(default_factory=VAEConfig)
-    loop: LoopConfig = field(default_factory=LoopConfig)
+class AMPConfig:
+    # AMP's reward r = w_G·r_G + w_S·r_S (Eq. 4). Single-clip imitation (Sec. 8.4) trains on the style
+    # reward alone: w_G = 0, w_S = 1. With a task, AMP uses w_G = w_S = 0.5.
+    task_weight: float = 0.0
+    style_weight: float = 1.0
 
     def __post_init__(self) -> None:
-        if self.name != "controlvae":
-            raise ConfigError(f"algo.name: {self.name!r} is not runnable yet; expected 'controlvae'")
+        for key in ("task_weight", "style_weight"):
+            if getattr(self, key) < 0:
+                raise ConfigError(f"algo.amp.{key} must be non-negative, got {getattr(self, key)}")
+
+
+@dataclass
+class ImitationConfig:
+    # Weights w_k of the tracking expert's multiplicative reward exp(−Σ w_k e_k) (workers/rewards.py):
+    # DeepMimic's scales. 0 drops a term.
+    weights: dict[str, float] = field(default_factory=lambda: dict(IMITATION_WEIGHTS))
+
+    def __post_init__(self) -> None:
+        for key, w in self.weights.items():
+            if key not in IMITATION_TERMS:
+                raise ConfigError(f"algo.imitation.weights.{key}: unknown term; expected one of {IMITATION_TERMS}")
+            if w < 0:
+                raise ConfigError(f"algo.imitation.weights.{key} must be non-negative, got {w}")
+
+
+# The sections a method may use, and their schemas. A method names its own in `Method.sections`;
+# a section that a method does not use must stay at its defaults (a value set there is refused, with
+# its key named) and is dropped (None) from the validated config.
+SECTIONS: dict[str, type] = {
+    "world_model": WorldModelConfig,
+    "vae": VAEConfig,
+    "ppo": PPOConfig,
+    "discriminator": DiscriminatorConfig,
+    "amp": AMPConfig,
+    "imitation": ImitationConfig,
+}
+
+
+@dataclass
+class AlgoConfig:
+    # The method's class (orchestrator/algos/): conf/algo/<name>.yaml sets it.
+    _target_: str = "orchestrator.algos.controlvae.ControlVAE"
+    # The method's name: the MLflow tags `algo` and `stage`.
+    name: str = "controlvae"
+    world_model: WorldModelConfig | None = field(default_factory=WorldModelConfig)
+    vae: VAEConfig | None = field(default_factory=VAEConfig)
+    ppo: PPOConfig | None = field(default_factory=PPOConfig)
+    discriminator: DiscriminatorConfig | None = field(default_factory=DiscriminatorConfig)
+    amp: AMPConfig | None = field(default_factory=AMPConfig)
+    imitation: ImitationConfig | None = field(default_factory=ImitationConfig)
+    loop: LoopConfig = field(default_factory=LoopConfig)
 
 
 @dataclass
@@ -176,10 +222,16 @@ class EvalConfig:
     fall_max_seconds: float = 60.0
     # Tracking error (ControlVAE Fig. 14): seconds of each clip tracked with the posterior.
     tracking_seconds: float = 2.0
+    # Pose error after dynamic time warping (AMP Eq. 10, Table 3): episodes of up to pose_seconds
+    # from random reference starts, deterministic actions (AMP: 32 episodes of up to 20 s per seed).
+    pose_episodes: int = 32
+    pose_seconds: float = 20.0
 
     def __post_init__(self) -> None:
         if self.fall_rollouts < 1:
             raise ConfigError(f"eval.fall_rollouts must be at least 1, got {self.fall_rollouts}")
+        if self.pose_episodes < 1 or self.pose_seconds <= 0:
+            raise ConfigError("eval.pose_episodes must be at least 1 and eval.pose_seconds positive")
         if self.fall_max_seconds <= 0 or self.tracking_seconds <= 0:
             raise ConfigError("eval.fall_max_seconds and eval.tracking_seconds must be positive")
 
@@ -202,6 +254,8 @@ class Config:
     resume: bool = False
     # Show a progress bar.
     progress: bool = True
+    # The seeds a sweep preset runs at this scale, as a Hydra sweep ("0,1,2"; scale/ sets it).
+    sweep_seeds: str = "0,1,2"
 
 
 def register() -> None:
@@ -217,7 +271,50 @@ def validate(cfg: DictConfig | dict[str, Any]) -> Config:
         structured = OmegaConf.merge(OmegaConf.structured(Config), cfg)
     except Exception as e:  # OmegaConf's type errors name the full key
         raise ConfigError(str(e)) from None
+    method = _method(structured.algo)
+    for section, schema in SECTIONS.items():
+        node = structured.algo[section]
+        if section not in method.sections:
+            _check_unused(structured.algo, section, schema, method)
+            continue
+        try:  # the learners' own checks, with the section's key in front
+            OmegaConf.to_object(node)
+        except ConfigError:
+            raise
+        except ValueError as e:
+            raise ConfigError(_section_key(section, str(e))) from None
     try:
-        return OmegaConf.to_object(structured)
+        out = OmegaConf.to_object(structured)
     except ValueError as e:
         raise ConfigError(_full_key(str(e))) from None
+    for section in SECTIONS:
+        if section not in method.sections:
+            setattr(out.algo, section, None)
+    return out
+
+
+def _section_key(section: str, message: str) -> str:
+    full = _full_key(message)
+    return full if full.startswith("algo.") else f"algo.{section}: {message}"
+
+
+def _method(algo: DictConfig) -> type:
+    from orchestrator.algos import method_class
+
+    try:
+        return method_class(algo._target_)
+    except Exception as e:
+        raise ConfigError(f"algo._target_: cannot use {algo._target_!r} as a method ({e})") from None
+
+
+def _check_unused(algo: DictConfig, section: str, schema: type, method: type) -> None:
+    """A section the method does not use must be left at its defaults."""
+    given = OmegaConf.to_container(algo[section]) if algo[section] is not None else None
+    default = OmegaConf.to_container(OmegaConf.structured(schema))
+    if given is None or given == default:
+        return
+    key = next((k for k in given if given[k] != default.get(k)), None)
+    uses = ", ".join(method.sections) or "none"
+    raise ConfigError(
+        f"algo.{section}.{key}: the {algo.name} method ({algo._target_}) has no {section} component (it uses: {uses})"
+    )

@@ -9,25 +9,27 @@ jobs write it directly; when a launcher runs jobs in parallel (e.g.
 callback starts an MLflow server on 127.0.0.1 in front of that file for the
 sweep's duration and the jobs log through it.
 When the multirun ends, the children's final metrics are gathered into a table
-(CSV and Markdown) and a figure, logged to the parent run.
+(JSON and Markdown) and a figure, with the learning curves of the preset's
+`curves` and the paper's result beside ours (`orchestrator.report`), logged to
+the parent run.
 """
 
 from __future__ import annotations
 
 import json
 import socket
-from collections import defaultdict
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 from hydra.experimental.callback import Callback
-from matplotlib.figure import Figure
 from omegaconf import DictConfig
+
+from orchestrator import report
 
 SWEEP_FILE = "sweep.json"
 SEQUENTIAL_LAUNCHER = "hydra._internal.core_plugins.basic_launcher.BasicLauncher"
-COMPARED = ("eval/time_until_fall_mean", "eval/tracking_error_mean")
+# ControlVAE's and PhysicsVAE's measures; a preset names its own (callbacks.sweep.metrics).
+DEFAULT_METRICS = {"eval/time_until_fall_mean": "time until fall (s)", "eval/tracking_error_mean": "tracking error (m)"}
 
 
 def store_uri(sweep_dir: Path, uri: str | None) -> str:
@@ -47,8 +49,26 @@ def parent_of(sweep_dir: str | Path) -> dict[str, str] | None:
 
 
 class SweepCallback(Callback):
-    def __init__(self, compare_by: str = "algo.vae.prior") -> None:
+    """The parent run of a multirun, and its comparison at the end.
+
+    compare_by: the swept key whose points are compared (seeds are pooled).
+    metrics:    final metrics to tabulate and plot, key -> label.
+    curves:     metrics whose learning curves (against samples) are plotted, key -> label; the first
+                is also summarised (final level, roughness, speed) in the table.
+    paper:      the paper's result, lines set beside ours in comparison.md.
+    """
+
+    def __init__(
+        self,
+        compare_by: str = "algo.vae.prior",
+        metrics: dict[str, str] | None = None,
+        curves: dict[str, str] | None = None,
+        paper: list[str] | None = None,
+    ) -> None:
         self.compare_by = compare_by
+        self.metrics = dict(metrics or DEFAULT_METRICS)
+        self.curves = dict(curves or {})
+        self.paper = list(paper or [])
         self.tracker = None
         self.sweep_dir: Path | None = None
         self.server = None
@@ -92,20 +112,30 @@ class SweepCallback(Callback):
     def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
         if self.tracker is None:
             return
-        from orchestrator.tracking.query import child_runs
+        from orchestrator.tracking.query import child_runs, metric_histories
 
         self.tracker.flush()
         children = child_runs(self.tracker.uri, self.tracker.run_id)
-        rows = child_results(children, self.compare_by)
+        rows = child_results(children, self.compare_by, list(self.metrics))
         if rows:
             self.tracker.log_dict({"rows": rows}, "comparison.json")
-            table = self.sweep_dir / "comparison.md"
-            table.write_text(markdown_table(rows, self.compare_by))
-            self.tracker.log_artifact(str(table))
-            print(f"sweep {self.tracker.run_id}: {len(rows)} runs\n" + table.read_text())
+            text = f"# {config.preset}\n\n" + report.final_table(rows, self.compare_by, self.metrics)
             png = self.sweep_dir / "comparison.png"
-            plot_comparison(rows, self.compare_by, png)
+            report.plot_final(rows, self.compare_by, self.metrics, png)
             self.tracker.log_artifact(str(png))
+            if self.curves:
+                histories = metric_histories(self.tracker.uri, [r["run_id"] for r in rows], list(self.curves))
+                curves_png = self.sweep_dir / "curves.png"
+                report.plot_curves(rows, histories, self.compare_by, self.curves, curves_png)
+                self.tracker.log_artifact(str(curves_png))
+                key, label = next(iter(self.curves.items()))
+                text += "\n" + report.curve_table(rows, histories, self.compare_by, key, label)
+            if self.paper:
+                text += "\n## The paper\n\n" + "\n".join(f"- {line}" for line in self.paper) + "\n"
+            table = self.sweep_dir / "comparison.md"
+            table.write_text(text)
+            self.tracker.log_artifact(str(table))
+            print(f"sweep {self.tracker.run_id}: {len(rows)} runs\n" + text)
         self.tracker.close("FINISHED")
         store = store_uri(self.sweep_dir, config.tracking.uri)
         look = f"mlflow ui --backend-store-uri {store} --host 127.0.0.1"
@@ -117,50 +147,12 @@ class SweepCallback(Callback):
         print(f"{where}  (sweep {self.tracker.run_id})")
 
 
-def child_results(children: list[dict[str, Any]], compare_by: str) -> list[dict[str, Any]]:
-    """One row per child run: the compared parameter, the seed and the final evaluation metrics."""
+def child_results(children: list[dict[str, Any]], compare_by: str, metrics: list[str]) -> list[dict[str, Any]]:
+    """One row per child run: the compared parameter, the seed and the final metrics."""
     rows = []
     for child in children:
         row = {compare_by: child["params"].get(compare_by), "seed": child["params"].get("seed")}
-        row.update({k: child["metrics"].get(k) for k in COMPARED})
+        row.update({k: child["metrics"].get(k) for k in metrics})
         row["run_id"] = child["run_id"]
         rows.append(row)
     return sorted(rows, key=lambda r: (str(r[compare_by]), str(r["seed"])))
-
-
-def grouped(rows: list[dict[str, Any]], compare_by: str) -> dict[str, dict[str, list[float]]]:
-    out: dict[str, dict[str, list[float]]] = defaultdict(lambda: defaultdict(list))
-    for r in rows:
-        for k in COMPARED:
-            if r.get(k) is not None:
-                out[str(r[compare_by])][k].append(float(r[k]))
-    return out
-
-
-def markdown_table(rows: list[dict[str, Any]], compare_by: str) -> str:
-    lines = [f"| {compare_by} | seeds | time until fall (s) | tracking error (m) |", "| --- | --- | --- | --- |"]
-    for value, metrics in grouped(rows, compare_by).items():
-        cells = []
-        for k in COMPARED:
-            v = np.asarray(metrics.get(k, []))
-            cells.append(f"{v.mean():.3f} ± {v.std():.3f}" if len(v) else "n/a")
-        n = max(len(metrics.get(k, [])) for k in COMPARED)
-        lines.append(f"| {value} | {n} | {cells[0]} | {cells[1]} |")
-    return "\n".join(lines) + "\n"
-
-
-def plot_comparison(rows: list[dict[str, Any]], compare_by: str, path: Path) -> None:
-    groups = grouped(rows, compare_by)
-    names = list(groups)
-    fig = Figure(figsize=(9, 3.5))
-    axes = fig.subplots(1, 2)
-    for ax, key, label in zip(axes, COMPARED, ("time until fall (s)", "tracking error (m)"), strict=True):
-        means = [np.mean(groups[n][key]) if groups[n][key] else np.nan for n in names]
-        stds = [np.std(groups[n][key]) if groups[n][key] else 0.0 for n in names]
-        ax.bar(names, means, yerr=stds, capsize=4, color="tab:blue")
-        for i, n in enumerate(names):
-            ax.scatter([i] * len(groups[n][key]), groups[n][key], color="black", s=10, zorder=3)
-        ax.set_ylabel(label)
-        ax.set_xlabel(compare_by)
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)

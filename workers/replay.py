@@ -24,7 +24,7 @@ or a gap, and can be longer than one push.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -47,6 +47,9 @@ class Trajectory:
     frame: np.ndarray  # [T, M] reference frame of each state
     version: int  # the policy version that collected it
     worker: int  # the worker that collected it
+    # What the method's learners need beyond the body states (`workers.rollout`): the policy's
+    # observations, log-probabilities and values, Φ(s), rewards, truncations. The buffer ignores them.
+    extras: dict[str, np.ndarray] = field(default_factory=dict)
 
     @property
     def num_transitions(self) -> int:

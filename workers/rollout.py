@@ -1,36 +1,105 @@
-"""The rollout worker: M simulated characters tracking reference clips with the VAE controller.
+"""The rollout worker: M simulated characters driven by any policy, recording what its learners need.
 
-ControlVAE's collection (§3.4, Alg. 1): each environment starts on a reference
-state drawn from the library and tracks the clip with z from the posterior
-q(z | s_t, s̃_{t+1}), s̃_{t+1} being the reference's next state; with probability
-`prior_probability` an *episode* draws z from the prior p(z | s_t) at every step
-instead (the paper chooses per trajectory; an episode is our trajectory). The
-action is the policy's mean plus Gaussian noise of std `action_noise` (σ_π).
+One worker serves every method: it steps the batched simulator with the
+`Policy` it is given (`workers.policies`: the VAE controller, the PPO
+actor-critic, later the task policy) and records, per control step and
+environment, the body states before and after, the actions, the episode ends
+with their cause, and what the policy and the recorders add:
+
+- the policy's extras (PPO: observation, log-probability, value);
+- for policies that act on an observation, the observation after the last step
+  (`last_obs`) and the final observation of each truncated episode (`final_obs`,
+  stored sparsely as rows t, env m), for bootstrapping;
+- each `Recorder`'s arrays: AMP's Φ(s_t), Φ(s_{t+1}) (`AMPFeatures`), the
+  imitation reward and its terms (`ImitationReward`).
+
 Finished environments (fall, tracking failure, clip end, timeout) are reset at
-once from the library's start distribution.
+once from the library's start distribution; `truncated` marks the ends that are
+time limits (timeout, end of a one-shot clip), the others are terminal.
 
-Inference runs batched over the M environments, in eval mode and without
-gradients. The worker owns its random streams (the simulator's resets, the
-per-episode prior choice, z and the action noise), so the same seed and the same
-weights give the same trajectories, and `state_dict` restores them all together
-with the environments' physical state.
+The worker owns its random streams (the simulator's resets, and the numpy and
+torch streams it hands its policy), so the same seed and the same weights give
+the same trajectories, and `state_dict` restores them together with the
+environments' physical state.
 """
 
 from __future__ import annotations
 
 import time
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
 import torch
 
 from workers.learners.base import Weights
-from workers.learners.vae import VAEConfig, build_controller
 from workers.models import body_state
 from workers.motion.library import MotionLibrary
+from workers.policies import Policy
 from workers.replay import Trajectory
+from workers.rewards import DEFAULT_WEIGHTS, imitation_reward
 from workers.sim.character import Character
-from workers.sim.env import BatchedSim, SimConfig
+from workers.sim.env import BatchedSim, SimConfig, StepResult
+from workers.sim.features import amp_dim, amp_features
+
+
+class Recorder:
+    """Records arrays [T, M, ...] alongside the trajectory, from each step's result."""
+
+    def begin(self, steps: int, num_envs: int, sim: BatchedSim) -> None:
+        raise NotImplementedError
+
+    def record(self, t: int, sim: BatchedSim, result: StepResult) -> None:
+        raise NotImplementedError
+
+    def finish(self) -> dict[str, np.ndarray]:
+        raise NotImplementedError
+
+
+class AMPFeatures(Recorder):
+    """AMP's discriminator observation of each transition: Φ(s_t) and Φ(s_{t+1}), [T, M, amp_dim] each."""
+
+    def __init__(self, character: Character):
+        self.character = character
+
+    def begin(self, steps: int, num_envs: int, sim: BatchedSim) -> None:
+        d = amp_dim(self.character)
+        self.before = np.empty((steps, num_envs, d), np.float32)
+        self.after = np.empty_like(self.before)
+        self.current = amp_features(self.character, sim.kin_state())
+
+    def record(self, t: int, sim: BatchedSim, result: StepResult) -> None:
+        self.before[t] = self.current
+        self.after[t] = amp_features(self.character, result.kin)
+        self.current = self.after[t]
+
+    def after_reset(self, sim: BatchedSim, ids: np.ndarray) -> None:
+        self.current = self.current.copy()
+        self.current[ids] = amp_features(self.character, sim.kin_state()[ids])
+
+    def finish(self) -> dict[str, np.ndarray]:
+        return {"amp_obs": self.before, "amp_next_obs": self.after}
+
+
+class ImitationReward(Recorder):
+    """The tracking expert's reward r_t [T, M] (`workers.rewards`) and its terms, `reward/<term>` [T, M]."""
+
+    def __init__(self, character: Character, weights: dict[str, float] | None = None):
+        self.character = character
+        self.weights = dict(DEFAULT_WEIGHTS if weights is None else weights)
+
+    def begin(self, steps: int, num_envs: int, sim: BatchedSim) -> None:
+        self.reward = np.empty((steps, num_envs), np.float32)
+        self.terms: dict[str, np.ndarray] = {}
+
+    def record(self, t: int, sim: BatchedSim, result: StepResult) -> None:
+        r, terms = imitation_reward(self.character, result.kin, sim.reference_state(), self.weights)
+        self.reward[t] = r
+        for k, v in terms.items():
+            self.terms.setdefault(k, np.empty_like(self.reward))[t] = v
+
+    def finish(self) -> dict[str, np.ndarray]:
+        return {"reward": self.reward, **{f"reward/{k}": v for k, v in self.terms.items()}}
 
 
 class RolloutWorker:
@@ -39,96 +108,103 @@ class RolloutWorker:
         character: Character,
         library: MotionLibrary,
         num_envs: int,
-        vae_config: VAEConfig,
+        policy: Policy,
         sim_config: SimConfig | None = None,
         seed: int = 0,
         worker_id: int = 0,
-        prior_probability: float = 0.4,
-        action_noise: float = 0.05,
+        recorders: Sequence[Recorder] = (),
     ):
-        if not 0.0 <= prior_probability <= 1.0:
-            raise ValueError(f"prior_probability must be in [0, 1], got {prior_probability}")
-        if action_noise < 0:
-            raise ValueError(f"action_noise must be non-negative, got {action_noise}")
         self.library = library
         self.worker_id = worker_id
-        self.prior_probability = prior_probability
-        self.action_noise = action_noise
         sim_seed, np_seed, torch_seed = np.random.SeedSequence([seed, worker_id]).generate_state(3)
         self.sim = BatchedSim(character, library, num_envs, sim_config, seed=int(sim_seed))
         self.rng = np.random.default_rng(int(np_seed))
         self.generator = torch.Generator().manual_seed(int(torch_seed))
-        # Networks are built under a fixed seed so that a worker that has not received weights yet
-        # is deterministic too (and identical across workers).
-        with torch.random.fork_rng(devices=[]):
-            torch.manual_seed(0)
-            self.controller = build_controller(character.num_bodies, character.num_actions, vae_config)
-        self.controller.eval().requires_grad_(False)
-        self.version = -1
-        self.use_prior = self.rng.random(num_envs) < prior_probability  # [M] per episode
+        self.policy = policy
+        policy.bind(num_envs, self.rng, self.generator)
+        self.recorders = list(recorders)
         # Counters for `stats`.
         self.steps_collected = 0
         self.episodes = 0
         self.episode_steps = 0  # summed length of the finished episodes
         self.ends = {"fell": 0, "tracking_failed": 0, "clip_ended": 0, "timeout": 0}
         self.collect_seconds = 0.0
+        self.returns = np.zeros(num_envs)  # running sums of the recorded reward, when there is one
+        self.finished_returns: list[float] = []
 
     @property
     def num_envs(self) -> int:
         return self.sim.num_envs
 
-    def set_weights(self, weights: Weights) -> None:
-        """Load published VAE weights and remember their version."""
-        self.controller.load_state_dict(weights.state)
-        self.version = int(weights.version)
+    @property
+    def version(self) -> int:
+        return self.policy.version
 
-    @torch.no_grad()
-    def act(self, bs: np.ndarray) -> np.ndarray:
-        """Noisy actions [M, A] for body states bs [M, B, 13] at the environments' current frames."""
-        s = body_state.features(torch.from_numpy(bs))
-        frames = self.sim.start_frame + self.sim.steps
-        ref_next = torch.from_numpy(self.library.features(self.sim.clip_id, frames + 1).astype(np.float32))
-        posterior, prior = self.controller.encode(s, ref_next)
-        use_prior = torch.from_numpy(self.use_prior)[:, None]
-        mean = torch.where(use_prior, prior.mean, posterior.mean)
-        log_std = torch.where(use_prior, prior.log_std, posterior.log_std)
-        eps = torch.randn(mean.shape, generator=self.generator)
-        z = mean + log_std.exp() * eps
-        a = self.controller.act(s, z)
-        a = a + self.action_noise * torch.randn(a.shape, generator=self.generator)
-        return a.numpy()
+    def set_weights(self, weights: Weights) -> None:
+        """Load published weights into the policy and remember their version."""
+        self.policy.set_weights(weights)
 
     def collect(self, steps: int) -> Trajectory:
         """Run every environment for `steps` control steps; the trajectory, tagged with the weights' version."""
         t0 = time.perf_counter()
-        sim, m = self.sim, self.num_envs
+        sim, m, policy = self.sim, self.num_envs, self.policy
         states = np.empty((steps, m, sim.character.num_bodies, 13), np.float32)
         next_states = np.empty_like(states)
         actions = np.empty((steps, m, sim.action_dim), np.float32)
         done = np.empty((steps, m), bool)
+        truncated = np.empty((steps, m), bool)
         clip_id = np.empty((steps, m), np.int64)
         frame = np.empty((steps, m), np.int64)
+        extras: dict[str, np.ndarray] = {}
+        final_rows: list[tuple[int, int]] = []
+        final_obs: list[np.ndarray] = []
+        for r in self.recorders:
+            r.begin(steps, m, sim)
         bs = body_state.pack(sim.kin_state())
         for t in range(steps):
             states[t] = bs
             clip_id[t] = sim.clip_id
             frame[t] = sim.start_frame + sim.steps
-            a = self.act(bs)
+            a, step_extras = policy.act(sim, bs)
             actions[t] = a
+            for k, v in step_extras.items():
+                if k not in extras:
+                    extras[k] = np.empty((steps,) + v.shape, v.dtype)
+                extras[k][t] = v
             result = sim.step(a)
             next_states[t] = body_state.pack(result.kin)
             done[t] = result.done
+            truncated[t] = result.timeout | result.clip_ended
+            for r in self.recorders:
+                r.record(t, sim, result)
             bs = next_states[t]
             if result.done.any():
                 ids = np.flatnonzero(result.done)
+                if policy.observes and truncated[t].any():
+                    cut = np.flatnonzero(truncated[t])
+                    final_rows.extend((t, int(i)) for i in cut)
+                    final_obs.append(policy.observe(sim, bs)[cut])
                 self._count_ends(result, ids)
                 sim.reset(ids)
-                self.use_prior[ids] = self.rng.random(len(ids)) < self.prior_probability
+                policy.episodes_reset(ids)
                 bs = bs.copy()
                 bs[ids] = body_state.pack(sim.kin_state()[ids])
+                for r in self.recorders:
+                    if hasattr(r, "after_reset"):
+                        r.after_reset(sim, ids)
+        for r in self.recorders:
+            extras.update(r.finish())
+        extras["truncated"] = truncated
+        if policy.observes:
+            extras["last_obs"] = policy.observe(sim, bs)
+            extras["final_rows"] = np.asarray(final_rows, np.int64).reshape(-1, 2)
+            width = extras["last_obs"].shape[-1]
+            extras["final_obs"] = np.concatenate(final_obs) if final_obs else np.zeros((0, width), np.float32)
+        if "reward" in extras:
+            self._count_returns(extras["reward"], done)
         self.steps_collected += steps * m
         self.collect_seconds += time.perf_counter() - t0
-        return Trajectory(states, next_states, actions, done, clip_id, frame, self.version, self.worker_id)
+        return Trajectory(states, next_states, actions, done, clip_id, frame, self.version, self.worker_id, extras)
 
     def _count_ends(self, result, ids: np.ndarray) -> None:
         self.episodes += len(ids)
@@ -136,8 +212,19 @@ class RolloutWorker:
         for key in self.ends:
             self.ends[key] += int(getattr(result, key)[ids].sum())
 
+    def _count_returns(self, reward: np.ndarray, done: np.ndarray) -> None:
+        for t in range(reward.shape[0]):
+            self.returns += reward[t]
+            ids = np.flatnonzero(done[t])
+            self.finished_returns.extend(self.returns[ids].tolist())
+            self.returns[ids] = 0.0
+
     def stats(self) -> dict[str, float]:
-        """Totals since the worker was built: steps, finished episodes and why they ended, throughput."""
+        """Totals since the worker was built: steps, finished episodes and why they ended, throughput.
+
+        `episode_return` is the mean undiscounted return of the episodes finished since the
+        last call (NaN if none), when the worker records a reward.
+        """
         out = {
             "steps": float(self.steps_collected),
             "episodes": float(self.episodes),
@@ -149,11 +236,14 @@ class RolloutWorker:
             "steps_per_second": self.steps_collected / self.collect_seconds if self.collect_seconds else 0.0,
             "version": float(self.version),
         }
+        if self.finished_returns:
+            out["episode_return"] = float(np.mean(self.finished_returns))
+            self.finished_returns = []
         return out
 
     # Checkpoints -----------------------------------------------------------------
     def state_dict(self) -> dict[str, Any]:
-        """RNG states, counters and the environments' state: NumPy arrays and plain types.
+        """RNG states, counters, the policy's episode state and the environments' state: NumPy and plain types.
 
         The weights are not included (the learner publishes them); restoring into a worker with the
         same weights continues the same trajectories.
@@ -164,7 +254,8 @@ class RolloutWorker:
             "rng": self.rng.bit_generator.state,
             "sim_rng": sim.rng.bit_generator.state,
             "generator": self.generator.get_state().numpy().copy(),
-            "use_prior": self.use_prior.copy(),
+            "policy": self.policy.state_dict(),
+            "returns": self.returns.copy(),
             "counters": {
                 "steps_collected": self.steps_collected,
                 "episodes": self.episodes,
@@ -190,11 +281,12 @@ class RolloutWorker:
             raise ValueError(
                 f"worker state is for {len(envs['clip_id'])} environments, this worker has {self.num_envs}"
             )
-        self.version = int(state["version"])
+        self.policy.version = int(state["version"])
         self.rng.bit_generator.state = state["rng"]
         sim.rng.bit_generator.state = state["sim_rng"]
         self.generator.set_state(torch.from_numpy(np.asarray(state["generator"], np.uint8).copy()))
-        self.use_prior = np.asarray(state["use_prior"], bool).copy()
+        self.policy.load_state_dict(state["policy"])
+        self.returns = np.asarray(state["returns"], float).copy()
         c = state["counters"]
         self.steps_collected = int(c["steps_collected"])
         self.episodes = int(c["episodes"])

@@ -24,6 +24,8 @@ def main(argv: list[str] | None = None) -> int:
     learners.add_argument("--threads", type=int, help="torch.set_num_threads (default: torch's default)")
     learners.add_argument("--seed", type=int, default=0)
     pipeline = sub.add_parser("pipeline", help="end-to-end samples/s and updates/s, local against Ray")
+    pipeline.add_argument("--algos", default="controlvae,amp,tracker", help="comma-separated methods (conf/algo/)")
+    pipeline.add_argument("--scale", default="smoke", help="the scale of every method's sizes (conf/scale/)")
     pipeline.add_argument("--runtimes", default="local,ray", help="comma-separated subset of local,ray")
     pipeline.add_argument("--workers", default="1,2", help="comma-separated rollout worker counts")
     pipeline.add_argument("--iterations", type=int, default=20, help="timed loop iterations per measurement")
@@ -68,8 +70,17 @@ def main(argv: list[str] | None = None) -> int:
             parser.error(f"--workers: expected integers, got {args.workers}")
         if not workers or min(workers) < 1 or args.iterations < 1 or args.envs < 1:
             parser.error("--workers, --iterations and --envs must be at least 1")
+        algos = [a for a in args.algos.split(",") if a]
         result = bench_pipeline.run(
-            runtimes, workers, args.iterations, args.warmup, args.envs, args.seed, lambda m: print(m, file=sys.stderr)
+            algos,
+            args.scale,
+            runtimes,
+            workers,
+            args.iterations,
+            args.warmup,
+            args.envs,
+            args.seed,
+            lambda m: print(m, file=sys.stderr),
         )
         text = bench_pipeline.format_table(result)
     else:  # pragma: no cover - argparse refuses unknown commands

@@ -1,9 +1,10 @@
-"""End-to-end throughput of the training loop: local against Ray, with 1…N rollout workers.
+"""End-to-end throughput of the training loop for every method: local against Ray, with 1…N rollout workers.
 
-Each measurement builds the smoke preset's components (tracking off) with the
-given runtime and worker count, runs warm-up iterations, then times `iterations`
-loop steps (collect → replay → update → publish → report) and reports
-environment samples per second and learner updates per second. Start-up and
+Each measurement builds a method's components at the given scale (tracking off)
+with the given runtime and worker count, runs warm-up iterations, then times
+`iterations` loop steps (collect → replay or learners → update → publish →
+report) and reports environment samples per second and learner updates
+(optimiser steps, summed over the learners) per second. Start-up and
 evaluation are not timed.
 """
 
@@ -27,11 +28,20 @@ from orchestrator.tracking.base import NoOpTracker
 CONF = Path(__file__).resolve().parents[2] / "conf"
 
 
-def measure(runtime: str, workers: int, iterations: int, warmup: int, envs: int, seed: int) -> dict[str, Any]:
+def _updates(metrics: dict[str, float]) -> float:
+    """Optimiser steps so far, summed over the learners (each reports its weights' version)."""
+    return sum(v for k, v in metrics.items() if k.endswith("/version") and not k.startswith("rollout/"))
+
+
+def measure(
+    algo: str, scale: str, runtime: str, workers: int, iterations: int, warmup: int, envs: int, seed: int
+) -> dict[str, Any]:
     register()
     with TemporaryDirectory() as tmp, initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
         overrides = [
-            "+experiment=smoke",
+            f"algo={algo}",
+            f"scale={scale}",
+            "motion=walk",
             f"runtime={runtime}",
             f"runtime.rollout_workers={workers}",
             f"runtime.envs_per_worker={envs}",
@@ -45,21 +55,24 @@ def measure(runtime: str, workers: int, iterations: int, warmup: int, envs: int,
         character, _ = load_world(cfg)
         rt = build_runtime(cfg)
         try:
-            trainer = Trainer(cfg, rt, NoOpTracker(), character.num_bodies, character.num_actions)
-            trainer.publish()
-            trainer.launch_collection()
+            trainer = Trainer(cfg, rt, NoOpTracker(), character)
+            trainer.method.start(trainer)
+            metrics: dict[str, float] = {}
             for _ in range(warmup):
-                trainer.step()
-            s0, u0 = trainer.state.samples, trainer.state.world_model_updates + trainer.state.vae_updates
+                metrics = trainer.step()
+            s0, u0 = trainer.state.samples, _updates(metrics)
             t0 = time.perf_counter()
             for _ in range(iterations):
-                trainer.step()
+                metrics = trainer.step()
             elapsed = time.perf_counter() - t0
             samples = trainer.state.samples - s0
-            updates = trainer.state.world_model_updates + trainer.state.vae_updates - u0
+            updates = _updates(metrics) - u0
+            trainer.method.finish(trainer)
         finally:
             rt.shutdown()
     return {
+        "algo": algo,
+        "scale": scale,
         "runtime": runtime,
         "workers": workers,
         "envs_per_worker": envs,
@@ -71,18 +84,27 @@ def measure(runtime: str, workers: int, iterations: int, warmup: int, envs: int,
 
 
 def run(
-    runtimes: list[str], workers: list[int], iterations: int, warmup: int, envs: int, seed: int, progress=None
+    algos: list[str],
+    scale: str,
+    runtimes: list[str],
+    workers: list[int],
+    iterations: int,
+    warmup: int,
+    envs: int,
+    seed: int,
+    progress=None,
 ) -> dict[str, Any]:
     results = []
-    for rt in runtimes:
-        for n in workers:
-            if progress:
-                progress(f"pipeline: {rt} with {n} rollout worker(s)...")
-            results.append(measure(rt, n, iterations, warmup, envs, seed))
+    for algo in algos:
+        for rt in runtimes:
+            for n in workers:
+                if progress:
+                    progress(f"pipeline: {algo} on {rt} with {n} rollout worker(s)...")
+                results.append(measure(algo, scale, rt, n, iterations, warmup, envs, seed))
     return {
         "benchmark": "pipeline",
         "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version()},
-        "preset": "smoke (tracking off)",
+        "preset": f"scale={scale}, motion=walk (tracking off)",
         "results": results,
     }
 
@@ -90,11 +112,13 @@ def run(
 def format_table(result: dict[str, Any]) -> str:
     lines = [f"pipeline benchmark: {result['preset']}, {result['machine']['cpus']} CPUs"]
     lines.append(
-        f"{'runtime':<8} {'workers':>7} {'envs/worker':>11} {'samples/s':>10} {'updates/s':>10} {'seconds':>8}"
+        f"{'algo':<11} {'runtime':<8} {'workers':>7} {'envs/worker':>11} {'samples/s':>10} {'updates/s':>10} "
+        f"{'seconds':>8}"
     )
     for r in result["results"]:
         lines.append(
-            f"{r['runtime']:<8} {r['workers']:>7} {r['envs_per_worker']:>11} {r['samples_per_s']:>10.0f} "
+            f"{r['algo']:<11} {r['runtime']:<8} {r['workers']:>7} {r['envs_per_worker']:>11} "
+            f"{r['samples_per_s']:>10.0f} "
             f"{r['updates_per_s']:>10.1f} {r['seconds']:>8.1f}"
         )
     return "\n".join(lines)

@@ -24,3 +24,15 @@ def child_runs(uri: str, parent_run_id: str) -> list[dict[str, Any]]:
         }
         for r in runs
     ]
+
+
+def metric_histories(uri: str, run_ids: list[str], keys: list[str]) -> dict[str, dict[str, list[tuple[int, float]]]]:
+    """{run_id: {metric: [(step, value), ...] in step order}} of the given runs and metrics."""
+    client = MlflowClient(uri)
+    out: dict[str, dict[str, list[tuple[int, float]]]] = {}
+    for run_id in run_ids:
+        out[run_id] = {}
+        for key in keys:
+            history = sorted((m.step, m.value) for m in client.get_metric_history(run_id, key))
+            out[run_id][key] = history
+    return out

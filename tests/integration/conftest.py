@@ -15,7 +15,9 @@ register()
 
 def smoke_config(run_dir: Path, *overrides: str) -> Config:
     with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
-        cfg = compose("config", overrides=["+experiment=smoke", f"run_dir={run_dir}", "progress=false", *overrides])
+        cfg = compose(
+            "config", overrides=["scale=smoke", "motion=walk", f"run_dir={run_dir}", "progress=false", *overrides]
+        )
     return validate(cfg)
 
 

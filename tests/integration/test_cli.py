@@ -31,7 +31,7 @@ def orchestrator(*args: str, **kwargs) -> subprocess.Popen:
 
 
 def test_bad_value_fails_before_anything_starts(tmp_path):
-    proc = orchestrator("+experiment=smoke", f"run_dir={tmp_path / 'bad'}", "algo.vae.prior=uniform")
+    proc = orchestrator("scale=smoke", "motion=walk", f"run_dir={tmp_path / 'bad'}", "algo.vae.prior=uniform")
     out, err = proc.communicate(timeout=120)
     assert proc.returncode == 2
     assert "config error: algo.vae.prior: unknown prior type 'uniform'" in err
@@ -41,7 +41,7 @@ def test_bad_value_fails_before_anything_starts(tmp_path):
 @pytest.mark.slow
 def test_killed_run_resumes_into_the_same_mlflow_run(tmp_path):
     run_dir = tmp_path / "run"
-    common = ["+experiment=smoke", f"run_dir={run_dir}", "progress=false", "algo.loop.checkpoint_every=2"]
+    common = ["scale=smoke", "motion=walk", f"run_dir={run_dir}", "progress=false", "algo.loop.checkpoint_every=2"]
     proc = orchestrator(*common, "algo.loop.iterations=1000")
     ckpt_dir = run_dir / "checkpoints"
     deadline = time.time() + 240

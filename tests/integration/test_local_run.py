@@ -28,7 +28,7 @@ def test_smoke_run_leaves_a_complete_mlflow_run(smoke):
     r = client.get_run(run_id_of(cfg))
     assert r.info.status == "FINISHED"
     assert r.data.params["algo.vae.prior"] == "conditional" and r.data.params["seed"] == "0"
-    assert r.data.tags["preset"] == "smoke"
+    assert r.data.tags["preset"] == "default" and r.data.tags["algo"] == "controlvae"
     keys = set(r.data.metrics)
     assert {"eval/time_until_fall_mean", "eval/tracking_error_mean", "throughput/samples_per_s"} <= keys
     assert any(k.startswith("world_model/") for k in keys) and any(k.startswith("vae/") for k in keys)
@@ -87,7 +87,7 @@ def test_unreachable_tracking_server_does_not_stop_training(smoke, tmp_path):
     with start_local_server(f"sqlite:///{tmp_path / 'server.db'}", tmp_path / "server-artifacts", port=port):
         assert replay_spool(cfg.run_dir, uri) == 0
         client = MlflowClient(uri)
-        runs = client.search_runs([client.get_experiment_by_name("smoke").experiment_id])
+        runs = client.search_runs([client.get_experiment_by_name("default").experiment_id])
         assert len(runs) == 1
         history = client.get_metric_history(runs[0].info.run_id, "throughput/samples_per_s")
         assert [m.step for m in history] == [2 * 8 * 16 * i for i in range(1, 5)]

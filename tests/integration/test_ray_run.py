@@ -28,11 +28,10 @@ def test_ray_run_matches_local_and_survives_a_killed_worker(smoke):
     rt = build_runtime(cfg)
     tracker = Recorder()
     try:
-        trainer = Trainer(cfg, rt, tracker, character.num_bodies, character.num_actions)
+        trainer = Trainer(cfg, rt, tracker, character)
         for name in ("replay", "learner-world_model", "learner-vae", "rollout-0", "rollout-1"):
             assert ray.get_actor(name, namespace=rt.namespace) is not None  # named in the dashboard
-        trainer.publish()
-        trainer.launch_collection()
+        trainer.method.start(trainer)
         first = [trainer.step() for _ in range(3)]
         rt.kill(trainer.workers[0])
         steps = [trainer.step() for _ in range(8)]  # the restart count is refreshed every 10 iterations
@@ -44,9 +43,8 @@ def test_ray_run_matches_local_and_survives_a_killed_worker(smoke):
     # The same three iterations in one process give the same numbers: the actors see the same calls in order.
     local_cfg = smoke("runtime=local", "runtime.rollout_workers=2", "algo.loop.checkpoint_every=0", name="local")
     local_rt = build_runtime(local_cfg)
-    local = Trainer(local_cfg, local_rt, NoOpTracker(), character.num_bodies, character.num_actions)
-    local.publish()
-    local.launch_collection()
+    local = Trainer(local_cfg, local_rt, NoOpTracker(), character)
+    local.method.start(local)
     expected = [local.step() for _ in range(3)]
     for key in ("world_model/loss", "vae/rec", "replay/size"):
         assert [m[key] for m in first] == [m[key] for m in expected], key
@@ -57,24 +55,51 @@ def test_a_killed_learner_and_replay_come_back_from_the_last_checkpoint(smoke):
     character, _ = load_world(cfg)
     rt = build_runtime(cfg)
     try:
-        trainer = Trainer(cfg, rt, Recorder(), character.num_bodies, character.num_actions)
-        trainer.publish()
-        trainer.launch_collection()
+        trainer = Trainer(cfg, rt, Recorder(), character)
+        trainer.method.start(trainer)
         for _ in range(4):
             before = trainer.step()
         assert before["world_model/version"] > 0 and before["loop/recoveries"] == 0
         trainer.save()
         saved_version, saved_size = before["world_model/version"], before["replay/size"]
-        rt.kill(trainer.world_model)
+        rt.kill(trainer.handles["world_model"])
         after = trainer.step()
         # The retried update ran on a fresh learner; the loop saw the new life and reloaded the checkpoint.
         assert after["loop/recoveries"] == 1
         after = trainer.step()
         assert after["world_model/version"] > saved_version  # continues from the checkpoint, not from zero
-        rt.kill(trainer.replay)
+        rt.kill(trainer.handles["replay"])
         after = trainer.step()
         assert after["loop/recoveries"] == 2
         assert after["replay/size"] >= saved_size  # the buffer came back with what the checkpoint held
         assert trainer.step()["world_model/loss"] > 0
+    finally:
+        rt.shutdown()
+
+
+def test_amp_learners_run_as_named_actors_and_come_back_from_the_last_checkpoint(smoke):
+    """AMP on Ray: killing learner-discriminator, then learner-ppo, recovers each from the last checkpoint."""
+    import ray
+
+    cfg = smoke("algo=amp", "runtime=ray", "runtime.rollout_workers=1", "algo.loop.checkpoint_every=0")
+    character, _ = load_world(cfg)
+    rt = build_runtime(cfg)
+    try:
+        trainer = Trainer(cfg, rt, Recorder(), character)
+        for name in ("learner-ppo", "learner-discriminator", "rollout-0"):
+            assert ray.get_actor(name, namespace=rt.namespace) is not None
+        trainer.method.start(trainer)
+        for _ in range(3):
+            before = trainer.step()
+        assert before["disc/version"] > 0 and before["ppo/version"] > 0 and before["loop/recoveries"] == 0
+        trainer.save()
+        saved = {k: before[f"{k}/version"] for k in ("disc", "ppo")}
+        for recoveries, (key, prefix) in enumerate((("discriminator", "disc"), ("ppo", "ppo")), start=1):
+            rt.kill(trainer.handles[key])
+            after = trainer.step()
+            assert after["loop/recoveries"] == recoveries, key
+            after = trainer.step()
+            assert after[f"{prefix}/version"] > saved[prefix], key  # continues from the checkpoint
+        assert after["ppo/policy_lag"] == 0  # the workers were refreshed to the reloaded policy
     finally:
         rt.shutdown()

@@ -15,7 +15,15 @@ ROOT = Path(__file__).resolve().parents[2]
 
 def run_sweep(sweep_dir: Path, *overrides: str) -> subprocess.CompletedProcess:
     """The prior ablation at smoke size, four iterations a point, through the CLI."""
-    command = [sys.executable, "-m", "orchestrator", "+experiment=[smoke,ablation_prior]", "algo.loop.iterations=4"]
+    command = [
+        sys.executable,
+        "-m",
+        "orchestrator",
+        "+experiment=ablation_prior",
+        "scale=smoke",
+        "motion=walk",
+        "algo.loop.iterations=4",
+    ]
     command += ["progress=false", f"hydra.sweep.dir={sweep_dir}", *overrides]
     return subprocess.run(command, cwd=ROOT, capture_output=True, text=True, timeout=600)
 

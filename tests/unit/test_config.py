@@ -1,4 +1,4 @@
-"""Every config group and preset composes and validates; bad values are refused with their key named."""
+"""Every config group, method, experiment and scale composes and validates; bad values are refused with their key."""
 
 from __future__ import annotations
 
@@ -7,17 +7,18 @@ from pathlib import Path
 import pytest
 from hydra import compose, initialize_config_dir
 
-from orchestrator.schema import ConfigError, register, validate
+from orchestrator.algos import method_class
+from orchestrator.schema import SECTIONS, ConfigError, register, validate
 
 CONF = Path(__file__).resolve().parents[2] / "conf"
-GROUPS = ["character", "motion", "algo", "model", "runtime", "tracking", "eval"]
+GROUPS = ["character", "motion", "algo", "runtime", "tracking", "scale"]
 
 register()
 
 
-def composed(*overrides: str):
+def composed(*overrides: str, hydra: bool = False):
     with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
-        return compose("config", overrides=["run_dir=unused", *overrides])
+        return compose("config", overrides=["run_dir=unused", *overrides], return_hydra_config=hydra)
 
 
 def options(group: str) -> list[str]:
@@ -27,22 +28,49 @@ def options(group: str) -> list[str]:
 @pytest.mark.parametrize(("group", "option"), [(g, o) for g in GROUPS for o in options(g)])
 def test_every_group_option_composes_and_validates(group, option):
     cfg = validate(composed(f"{group}={option}"))
-    assert cfg.algo.name == "controlvae"
+    assert cfg.algo.name == (option if group == "algo" else "controlvae")
 
 
-@pytest.mark.parametrize("experiment", options("experiment"))
-def test_every_experiment_composes_and_validates(experiment):
-    cfg = validate(composed(f"+experiment={experiment}"))
+@pytest.mark.parametrize(("algo", "scale"), [(a, s) for a in options("algo") for s in options("scale")])
+def test_every_method_composes_with_every_scale(algo, scale):
+    cfg = validate(composed(f"algo={algo}", f"scale={scale}"))
+    method = method_class(cfg.algo._target_)
+    for section in SECTIONS:  # the method's sections are there, the others dropped
+        assert (getattr(cfg.algo, section) is not None) == (section in method.sections), section
+    assert (CONF / "algo_scale" / f"{algo}_{scale}.yaml").exists()
+
+
+@pytest.mark.parametrize(("experiment", "scale"), [(e, s) for e in options("experiment") for s in options("scale")])
+def test_every_experiment_composes_with_every_scale(experiment, scale):
+    cfg = validate(composed(f"+experiment={experiment}", f"scale={scale}"))
     assert cfg.preset == experiment
+    assert cfg.sweep_seeds == ("0" if scale == "smoke" else "0,1,2")
+
+
+def test_scales_set_the_budget_of_each_method():
+    smoke, laptop, paper = (validate(composed("algo=amp", f"scale={s}")) for s in ("smoke", "laptop", "paper"))
+    assert smoke.algo.loop.iterations < laptop.algo.loop.iterations < paper.algo.loop.iterations
+    assert list(paper.algo.ppo.policy_hidden) == [1024, 512] and paper.algo.ppo.clip == 0.02  # AMP Table 4
+    assert paper.algo.discriminator.w_gp == 10.0 and paper.algo.discriminator.loss == "lsgan"
 
 
 def test_defaults_are_the_laptop_run():
     cfg = validate(composed())
     assert cfg.runtime._target_.endswith("LocalRuntime") and cfg.motion.mirror
     assert "walker/turn_left0" in cfg.motion.clips and cfg.algo.vae.prior == "conditional"
-    assert list(cfg.algo.world_model.hidden) == [256, 256, 256]  # model=small
-    paper = validate(composed("model=paper"))
+    assert list(cfg.algo.world_model.hidden) == [256, 256, 256]  # algo_scale/controlvae_laptop
+    assert cfg.algo.ppo is None and cfg.algo.discriminator is None
+    paper = validate(composed("scale=paper"))
     assert list(paper.algo.vae.policy_hidden) == [512, 512, 512] and paper.algo.vae.num_experts == 6
+
+
+def test_ablation_gp_names_its_loss_and_penalty_placement():
+    cfg = composed("+experiment=ablation_gp", hydra=True)
+    assert cfg.algo.name == "amp" and cfg.motion.clips == ["humanoid3d_walk"]
+    assert cfg.algo.discriminator.loss == "lsgan" and cfg.algo.discriminator.gp_on == "data"
+    params = cfg.hydra.sweeper.params
+    assert params["algo.discriminator.w_gp"] == "0,1,10,40" and params["seed"] == "0,1,2"
+    assert cfg.hydra.callbacks.sweep.compare_by == "algo.discriminator.w_gp"
 
 
 @pytest.mark.parametrize(
@@ -55,11 +83,36 @@ def test_defaults_are_the_laptop_run():
         ("motion.clips=[humanoid3d_walk,humanoid3d_moonwalk]", r"motion.clips\[1\]: humanoid3d_moonwalk"),
         ("algo.loop.iterations=0", "algo.loop.iterations must be at least 1"),
         ("character.control_hz=7", "character.sim_hz"),
+        # A method given a component it lacks.
+        ("algo.ppo.clip=0.1", r"algo.ppo.clip: the controlvae method .* has no ppo component"),
+        ("algo.discriminator.w_gp=5", "algo.discriminator.w_gp: the controlvae method"),
+        ("algo._target_=orchestrator.loop.Trainer", "algo._target_: cannot use 'orchestrator.loop.Trainer'"),
     ],
 )
 def test_bad_values_are_refused_with_their_key(override, message):
     with pytest.raises(ConfigError, match=message):
         validate(composed(override))
+
+
+@pytest.mark.parametrize(
+    ("overrides", "message"),
+    [
+        (("algo=amp", "algo.world_model.lr=0.1"), r"algo.world_model.lr: the amp method .* has no world_model"),
+        (("algo=amp", "algo.vae.prior=learned"), "algo.vae.prior: the amp method"),
+        (("algo=tracker", "algo.discriminator.w_gp=1"), "algo.discriminator.w_gp: the tracker method"),
+        # Negative reward weights.
+        (("algo=amp", "algo.amp.style_weight=-1"), "algo.amp.style_weight must be non-negative"),
+        (("algo=amp", "algo.amp.task_weight=-0.5"), "algo.amp.task_weight must be non-negative"),
+        (("algo=tracker", "algo.imitation.weights.pose=-2"), "algo.imitation.weights.pose must be non-negative"),
+        (("algo=tracker", "+algo.imitation.weights.style=1"), "algo.imitation.weights.style: unknown term"),
+        (("algo=amp", "algo.discriminator.w_gp=-1"), "algo.discriminator: w_gp and logit_reg must be non-negative"),
+        (("algo=amp", "algo.discriminator.gp_on=policy"), "algo.discriminator: unknown gradient penalty placement"),
+        (("algo=amp", "algo.ppo.optimizer=rmsprop"), "algo.ppo: PPOConfig.optimizer must be"),
+    ],
+)
+def test_method_sections_are_checked_with_their_key(overrides, message):
+    with pytest.raises(ConfigError, match=message):
+        validate(composed(*overrides))
 
 
 def test_type_errors_are_refused_at_composition_with_the_key():

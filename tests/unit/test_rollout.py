@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import dataclasses
 
 import numpy as np
 import pytest
@@ -11,6 +12,7 @@ import torch
 from workers.learners.base import Weights
 from workers.learners.vae import VAEConfig, build_controller
 from workers.models import body_state
+from workers.policies import VAEPolicy
 from workers.replay import ReplayBuffer
 from workers.rollout import RolloutWorker
 
@@ -25,8 +27,12 @@ def weights(character) -> Weights:
     return Weights(7, {k: v.clone() for k, v in controller.state_dict().items()})
 
 
-def make_worker(character, library, weights=None, seed=0, worker_id=0, **kwargs) -> RolloutWorker:
-    worker = RolloutWorker(character, library, M, SMALL, seed=seed, worker_id=worker_id, **kwargs)
+def make_worker(
+    character, library, weights=None, seed=0, worker_id=0, action_noise=0.05, prior_probability=0.4
+) -> RolloutWorker:
+    config = dataclasses.replace(SMALL, action_noise=action_noise)
+    policy = VAEPolicy(character.num_bodies, character.num_actions, config, prior_probability)
+    worker = RolloutWorker(character, library, M, policy, seed=seed, worker_id=worker_id)
     if weights is not None:
         worker.set_weights(weights)
     return worker
@@ -87,10 +93,10 @@ def test_noise_and_prior_choice(character, walk_run, weights):
     raising the noise changes them by about its size."""
     quiet = make_worker(character, walk_run, weights, seed=1, action_noise=0.0, prior_probability=0.0)
     noisy = make_worker(character, walk_run, weights, seed=1, action_noise=0.5, prior_probability=0.0)
-    assert not quiet.use_prior.any()
+    assert not quiet.policy.use_prior.any()
     diff = noisy.collect(1).actions - quiet.collect(1).actions
     assert diff.std() == pytest.approx(0.5, rel=0.2)
-    assert make_worker(character, walk_run, weights, prior_probability=1.0).use_prior.all()
+    assert make_worker(character, walk_run, weights, prior_probability=1.0).policy.use_prior.all()
     with pytest.raises(ValueError, match="prior_probability"):
         make_worker(character, walk_run, prior_probability=1.5)
 

@@ -1,0 +1,44 @@
+"""AMP (Peng et al. 2021): PPO on the reward of an adversarial motion prior.
+
+Components: PPO (`learner-ppo`) and the discriminator (`learner-discriminator`)
+with its replay of past policy transitions and the clips' transitions as data.
+The workers record AMP's Φ(s) of every transition; the discriminator scores them
+(style reward, Eq. 7) before its own update on them, and the mixed reward
+r = w_G·r_G + w_S·r_S (Eq. 4) trains PPO. Episodes end on a fall (early
+termination); there is no tracking termination, since AMP does not track the clip.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from typing import Any
+
+from orchestrator.algos import Component
+from orchestrator.algos.onpolicy import OnPolicy
+from orchestrator.components_ppo import DiscriminatorActor
+from workers.rollout import AMPFeatures
+
+
+class AMP(OnPolicy):
+    sections = ("ppo", "discriminator", "amp")
+    observation = "state"
+
+    def components(self) -> list[Component]:
+        disc = Component("discriminator", DiscriminatorActor, (self.cfg,), actor="learner-discriminator")
+        return super().components() + [disc]
+
+    @classmethod
+    def make_recorders(cls, cfg, character) -> list[AMPFeatures]:
+        return [AMPFeatures(character)]
+
+    @classmethod
+    def sim_config(cls, cfg):
+        return replace(super().sim_config(cfg), tracking_error_m=0.0)
+
+    def rewards(self, t, trajectories: list[Any]) -> tuple[Any, dict[str, Any]]:
+        disc = t.handles["discriminator"]
+        rewards = t.rt.call(disc, "rewards", *trajectories)  # before the discriminator learns from them
+        return rewards, {"discriminator": t.rt.call(disc, "train", *trajectories)}
+
+    def progress(self, metrics: dict[str, float]) -> dict[str, str]:
+        return {**super().progress(metrics), "style": f"{metrics.get('disc/style_reward', float('nan')):.3g}"}

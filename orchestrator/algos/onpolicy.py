@@ -1,0 +1,106 @@
+"""What the PPO methods share (AMP, the tracking expert, later the task policy): the on-policy iteration.
+
+Components: the PPO learner (`learner-ppo`) and whatever the method adds (AMP's
+discriminator). Rollout workers run the actor-critic (`GaussianPolicy`) on the
+method's observation.
+
+One iteration: every worker collects `algo.loop.collect_steps` control steps of
+its environments with the newest weights (PPO is on-policy: collection is
+synchronous, every worker is refreshed to the newest version first); the
+trajectories go to the learners directly (object references on Ray); the method
+turns them into rewards (`rewards`, None for rewards recorded by the workers);
+PPO takes one iteration on them; the new weights are published once.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+from orchestrator.algos import Component, Method
+from orchestrator.components import load_world
+from orchestrator.components_ppo import PPOActor
+from orchestrator.evaluate import evaluate_imitation
+from workers.models.actor_critic import ActorCritic
+from workers.policies import GaussianPolicy, observation_dim
+from workers.sim.features import StateLayout
+
+METRIC_PREFIX = {"discriminator": "disc"}  # DESIGN's metric namespaces where they differ from the key
+
+
+def actor_critic(cfg, character, obs: str) -> ActorCritic:
+    """The network a PPOConfig describes, as workers and evaluation build it (the learner's twin)."""
+    p = cfg.algo.ppo
+    return ActorCritic(
+        observation_dim(obs, StateLayout(character.num_bodies).dim),
+        character.num_actions,
+        action_std=p.action_std,
+        policy_hidden=p.policy_hidden,
+        value_hidden=p.value_hidden,
+        activation=p.activation,
+        policy_out_scale=p.policy_out_scale,
+        obs_norm_max_count=p.obs_norm_max_count,
+    )
+
+
+class OnPolicy(Method):
+    """A PPO method; subclasses set `observation` and may add components and rewards."""
+
+    observation = "state"
+    residual = False  # actions are offsets from the reference's next pose (workers.policies.GaussianPolicy)
+
+    def __init__(self, cfg, character):
+        super().__init__(cfg, character)
+        self.world = None
+
+    def components(self) -> list[Component]:
+        obs_dim = observation_dim(self.observation, StateLayout(self.character.num_bodies).dim)
+        return [Component("ppo", PPOActor, (self.cfg, obs_dim, self.character.num_actions), actor="learner-ppo")]
+
+    @classmethod
+    def make_policy(cls, cfg, character) -> GaussianPolicy:
+        return GaussianPolicy(actor_critic(cfg, character, cls.observation), cls.observation, cls.residual)
+
+    def rewards(self, t, trajectories: list[Any]) -> tuple[Any, dict[str, Any]]:
+        """(A future of the rewards [T, M] per trajectory, or None to use the recorded `reward`;
+        futures of other learners' metrics, by component key)."""
+        return None, {}
+
+    def publish(self, t) -> None:
+        t.publish(t.rt.get(t.rt.call(t.handles["ppo"], "get_weights")))
+
+    def start(self, t) -> None:
+        self.publish(t)
+
+    def step(self, t) -> tuple[int, dict[str, float]]:
+        cfg, rt = self.cfg, t.rt
+        t0 = time.perf_counter()
+        trajectories = t.collect(cfg.algo.loop.collect_steps, staleness=0)
+        rewards, others = self.rewards(t, trajectories)
+        ppo = rt.call(t.handles["ppo"], "train", *trajectories, rewards=rewards)
+        metrics: dict[str, float] = {}
+        for key, future in {"ppo": ppo, **others}.items():
+            m = rt.get(future)
+            t.check_alive(key, m.pop("incarnation"))
+            prefix = METRIC_PREFIX.get(key, key)
+            for w, v in enumerate(m.pop("trajectory_versions", [])):
+                t.worker_came_back(w, v)
+            metrics.update({f"{prefix}/{k}": float(v) for k, v in m.items()})
+        t.worker_restarts()
+        t_update = time.perf_counter() - t0
+        t1 = time.perf_counter()
+        self.publish(t)
+        collected = cfg.algo.loop.collect_steps * cfg.runtime.envs_per_worker * len(t.workers)
+        metrics.update({"throughput/collect_and_update_s": t_update, "throughput/publish_s": time.perf_counter() - t1})
+        return collected, metrics
+
+    def evaluate(self, t, final: bool) -> dict[str, float]:
+        if self.world is None:  # the driver's own character and library, loaded once
+            self.world = load_world(self.cfg)
+        weights = t.rt.get(t.rt.call(t.handles["ppo"], "get_weights"))
+        policy = self.make_policy(self.cfg, self.world[0])
+        policy.set_weights(weights)
+        return evaluate_imitation(self.cfg, *self.world, policy, t.tracker, t.state.iteration, final)
+
+    def progress(self, metrics: dict[str, float]) -> dict[str, str]:
+        return {"return": f"{metrics.get('ppo/episode_return', float('nan')):.3g}"}

@@ -1,0 +1,154 @@
+"""A sweep's comparison: tables and figures from its child runs, for the parent run.
+
+- `final_table`: one row per point of the compared parameter, each final metric as
+  mean ± std over seeds.
+- `plot_final`: a bar per point and metric, each seed's value as a dot.
+- `plot_curves`: learning curves against environment samples, the mean over seeds
+  and a band from the lowest to the highest seed, one panel per metric.
+- `curve_summary`: what a learning curve says in three numbers, for comparing
+  with a paper's words ("fluctuates and is slower"): its final level (mean of the
+  last tenth), its roughness (mean absolute change between consecutive logged
+  values, over the range of the curve) and its speed (samples until it first
+  reaches half of its final level above its start).
+"""
+
+from __future__ import annotations
+
+from collections import defaultdict
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from matplotlib.figure import Figure
+
+History = list[tuple[int, float]]  # (step = samples, value)
+
+
+def group(rows: list[dict[str, Any]], compare_by: str) -> dict[str, list[dict[str, Any]]]:
+    out: dict[str, list[dict[str, Any]]] = defaultdict(list)
+    for r in rows:
+        out[str(r[compare_by])].append(r)
+    return dict(sorted(out.items(), key=lambda kv: _sort_key(kv[0])))
+
+
+def _sort_key(value: str) -> tuple:
+    try:
+        return (0, float(value), "")
+    except ValueError:
+        return (1, 0.0, value)
+
+
+def _values(rows: list[dict[str, Any]], key: str) -> np.ndarray:
+    return np.asarray([float(r[key]) for r in rows if r.get(key) is not None])
+
+
+def final_table(rows: list[dict[str, Any]], compare_by: str, metrics: dict[str, str]) -> str:
+    lines = [
+        f"| {compare_by} | seeds | " + " | ".join(metrics.values()) + " |",
+        "| --- | --- |" + " --- |" * len(metrics),
+    ]
+    for value, members in group(rows, compare_by).items():
+        cells = []
+        for key in metrics:
+            v = _values(members, key)
+            cells.append(f"{v.mean():.3f} ± {v.std():.3f}" if len(v) else "n/a")
+        lines.append(f"| {value} | {len(members)} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def plot_final(rows: list[dict[str, Any]], compare_by: str, metrics: dict[str, str], path: Path) -> None:
+    groups = group(rows, compare_by)
+    names = list(groups)
+    fig = Figure(figsize=(4.5 * len(metrics), 3.5))
+    axes = np.atleast_1d(fig.subplots(1, len(metrics)))
+    for ax, (key, label) in zip(axes, metrics.items(), strict=True):
+        vals = [_values(groups[n], key) for n in names]
+        means = [v.mean() if len(v) else np.nan for v in vals]
+        stds = [v.std() if len(v) else 0.0 for v in vals]
+        ax.bar(names, means, yerr=stds, capsize=4, color="tab:blue")
+        for i, v in enumerate(vals):
+            ax.scatter([i] * len(v), v, color="black", s=10, zorder=3)
+        ax.set_ylabel(label)
+        ax.set_xlabel(compare_by)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+
+
+def _on_grid(histories: list[History], grid: np.ndarray) -> np.ndarray:
+    """Each history interpolated onto `grid` [G] (NaN beyond its last step): [n, G]."""
+    out = np.full((len(histories), len(grid)), np.nan)
+    for i, h in enumerate(histories):
+        if h:
+            steps, values = np.asarray(h, float).T
+            inside = grid <= steps[-1]
+            out[i, inside] = np.interp(grid[inside], steps, values)
+    return out
+
+
+def plot_curves(
+    rows: list[dict[str, Any]],
+    histories: dict[str, dict[str, History]],
+    compare_by: str,
+    curves: dict[str, str],
+    path: Path,
+) -> None:
+    """rows carry run_id; histories[run_id][metric] is that run's history."""
+    groups = group(rows, compare_by)
+    fig = Figure(figsize=(4.5 * len(curves), 3.5))
+    axes = np.atleast_1d(fig.subplots(1, len(curves)))
+    colours = [f"C{i}" for i in range(10)]
+    for ax, (key, label) in zip(axes, curves.items(), strict=True):
+        for c, (value, members) in enumerate(groups.items()):
+            hs = [histories.get(m["run_id"], {}).get(key, []) for m in members]
+            last = max((h[-1][0] for h in hs if h), default=0)
+            if not last:
+                continue
+            grid = np.linspace(0, last, 100)
+            ys = _on_grid(hs, grid)
+            ok = ~np.all(np.isnan(ys), axis=0)
+            colour = colours[c % len(colours)]
+            ax.plot(grid[ok], np.nanmean(ys[:, ok], axis=0), color=colour, label=f"{compare_by}={value}")
+            if len(hs) > 1:
+                ax.fill_between(grid[ok], np.nanmin(ys[:, ok], 0), np.nanmax(ys[:, ok], 0), color=colour, alpha=0.2)
+        ax.set_xlabel("environment samples")
+        ax.set_ylabel(label)
+    axes[0].legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+
+
+def curve_summary(history: History) -> dict[str, float]:
+    """{final, roughness, samples_to_half} of one learning curve (see the module docstring)."""
+    if len(history) < 2:
+        return {"final": float("nan"), "roughness": float("nan"), "samples_to_half": float("nan")}
+    steps, values = np.asarray(history, float).T
+    tail = max(1, len(values) // 10)
+    final = float(values[-tail:].mean())
+    span = float(values.max() - values.min()) or 1.0
+    roughness = float(np.mean(np.abs(np.diff(values))) / span)
+    half = values[0] + 0.5 * (final - values[0])
+    reached = np.flatnonzero(values >= half) if final >= values[0] else np.flatnonzero(values <= half)
+    return {
+        "final": final,
+        "roughness": roughness,
+        "samples_to_half": float(steps[reached[0]]) if len(reached) else float("nan"),
+    }
+
+
+def curve_table(
+    rows: list[dict[str, Any]], histories: dict[str, dict[str, History]], compare_by: str, key: str, label: str
+) -> str:
+    """Per point, the summary of metric `key`'s curves as mean ± std over seeds."""
+    lines = [
+        f"| {compare_by} | final {label} | roughness | samples to half of final |",
+        "| --- | --- | --- | --- |",
+    ]
+    for value, members in group(rows, compare_by).items():
+        s = [curve_summary(histories.get(m["run_id"], {}).get(key, [])) for m in members]
+        cells = []
+        for k in ("final", "roughness", "samples_to_half"):
+            v = np.asarray([x[k] for x in s], float)
+            v = v[np.isfinite(v)]
+            cells.append(f"{v.mean():.3g} ± {v.std():.2g}" if len(v) else "n/a")
+        lines.append(f"| {value} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"

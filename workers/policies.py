@@ -1,0 +1,175 @@
+"""The policies a rollout worker can run, behind one small interface.
+
+A `Policy` maps the simulator's current state to actions for all M environments
+at once, and returns with them the per-environment numbers its learner needs
+(log-probabilities and values for PPO, nothing for the VAE controller). The
+worker hands each policy its random streams (`bind`), so one seed gives the same
+trajectories whichever process runs the worker.
+
+- `VAEPolicy`: ControlVAE's collection (§3.4, Alg. 1). Each episode tracks its
+  clip with z from the posterior q(z | s_t, s̃_{t+1}) or, with probability
+  `prior_probability`, from the prior p(z | s_t) at every step; the action is the
+  policy's mean plus Gaussian noise of std `action_noise` (σ_π).
+- `GaussianPolicy`: the PPO actor-critic, π(a | o) = N(μ(o), σ²) with fixed σ,
+  acting on the observation `obs`: "state" (s, AMP's policy input for
+  single-clip imitation) or "imitation" (s and the reference's s̃_{t+1}, the
+  tracking expert's). With `residual`, the sampled action is an offset from the
+  reference's next pose (the PD targets that hold it), as tracking controllers
+  commonly act: the untrained policy then starts as PD tracking of the clip
+  rather than holding the zero pose, which earns no imitation reward at all.
+  The trajectory's `actions` are always the PD targets applied; the sample that
+  the log-probability refers to is the extra `action`.
+
+Inference runs batched, in eval mode and without gradients.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import torch
+
+from workers.learners.base import Weights
+from workers.learners.vae import VAEConfig, build_controller
+from workers.models import body_state
+from workers.models.actor_critic import ActorCritic
+from workers.rewards import imitation_observation
+from workers.sim.env import BatchedSim
+
+OBSERVATIONS = ("state", "imitation")
+
+
+def observation_dim(kind: str, state_dim: int) -> int:
+    if kind not in OBSERVATIONS:
+        raise ValueError(f"unknown observation {kind!r}; expected one of {OBSERVATIONS}")
+    return state_dim if kind == "state" else 2 * state_dim
+
+
+def observe(kind: str, sim: BatchedSim, bs: np.ndarray) -> np.ndarray:
+    """The observation [M, D] of the environments in body states bs [M, B, 13] at their current frames."""
+    s = body_state.features(torch.from_numpy(bs)).numpy()
+    if kind == "state":
+        return s
+    ref_next = sim.library.features(sim.clip_id, sim.start_frame + sim.steps + 1)
+    return imitation_observation(s, ref_next)
+
+
+class Policy:
+    """The interface the rollout worker drives. `version` is the published weights' version (-1: none yet)."""
+
+    version: int = -1
+    # The policy acts on an observation (`observe`): the worker records the last one of each
+    # collect call and the final one of each truncated episode, for bootstrapping.
+    observes: bool = False
+
+    def bind(self, num_envs: int, rng: np.random.Generator, generator: torch.Generator) -> None:
+        """Take the worker's random streams (NumPy for per-episode choices, torch for noise)."""
+        self.rng, self.generator = rng, generator
+
+    def set_weights(self, weights: Weights) -> None:
+        raise NotImplementedError
+
+    def act(self, sim: BatchedSim, bs: np.ndarray) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+        """(actions [M, A], per-environment extras {name: [M, ...]}) for body states bs [M, B, 13]."""
+        raise NotImplementedError
+
+    def observe(self, sim: BatchedSim, bs: np.ndarray) -> np.ndarray:
+        raise NotImplementedError
+
+    def episodes_reset(self, ids: np.ndarray) -> None:
+        """Environments `ids` start new episodes."""
+
+    def state_dict(self) -> dict[str, Any]:
+        return {}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        pass
+
+
+class VAEPolicy(Policy):
+    def __init__(self, num_bodies: int, action_dim: int, config: VAEConfig, prior_probability: float = 0.4):
+        if not 0.0 <= prior_probability <= 1.0:
+            raise ValueError(f"prior_probability must be in [0, 1], got {prior_probability}")
+        if config.action_noise < 0:
+            raise ValueError(f"action_noise must be non-negative, got {config.action_noise}")
+        self.prior_probability = prior_probability
+        self.action_noise = config.action_noise
+        # Built under a fixed seed so that a worker that has not received weights yet is
+        # deterministic too (and identical across workers).
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(0)
+            self.controller = build_controller(num_bodies, action_dim, config)
+        self.controller.eval().requires_grad_(False)
+
+    def bind(self, num_envs: int, rng: np.random.Generator, generator: torch.Generator) -> None:
+        super().bind(num_envs, rng, generator)
+        self.use_prior = self.rng.random(num_envs) < self.prior_probability  # [M] per episode
+
+    def set_weights(self, weights: Weights) -> None:
+        self.controller.load_state_dict(weights.state)
+        self.version = int(weights.version)
+
+    @torch.no_grad()
+    def act(self, sim: BatchedSim, bs: np.ndarray) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+        s = body_state.features(torch.from_numpy(bs))
+        frames = sim.start_frame + sim.steps
+        ref_next = torch.from_numpy(sim.library.features(sim.clip_id, frames + 1).astype(np.float32))
+        posterior, prior = self.controller.encode(s, ref_next)
+        use_prior = torch.from_numpy(self.use_prior)[:, None]
+        mean = torch.where(use_prior, prior.mean, posterior.mean)
+        log_std = torch.where(use_prior, prior.log_std, posterior.log_std)
+        eps = torch.randn(mean.shape, generator=self.generator)
+        z = mean + log_std.exp() * eps
+        a = self.controller.act(s, z)
+        a = a + self.action_noise * torch.randn(a.shape, generator=self.generator)
+        return a.numpy(), {}
+
+    def episodes_reset(self, ids: np.ndarray) -> None:
+        self.use_prior[ids] = self.rng.random(len(ids)) < self.prior_probability
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"use_prior": self.use_prior.copy()}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.use_prior = np.asarray(state["use_prior"], bool).copy()
+
+
+class GaussianPolicy(Policy):
+    """The PPO actor-critic; its extras are the observation, log π(a | o) and V(o) of each step."""
+
+    observes = True
+
+    def __init__(self, module: ActorCritic, obs: str = "state", residual: bool = False):
+        observation_dim(obs, 0)  # checks the name
+        self.module = module.eval().requires_grad_(False)
+        self.obs = obs
+        self.residual = residual
+
+    def base_action(self, sim: BatchedSim) -> np.ndarray:
+        """The PD targets [M, A] that hold the reference's next pose (the zero offset of a residual policy)."""
+        ref = sim.library.state(sim.clip_id, sim.start_frame + sim.steps + 1)
+        return sim.character.qpos_to_action(ref.qpos).astype(np.float32)
+
+    def set_weights(self, weights: Weights) -> None:
+        self.module.load_state_dict(weights.state)
+        self.version = int(weights.version)
+
+    def observe(self, sim: BatchedSim, bs: np.ndarray) -> np.ndarray:
+        return observe(self.obs, sim, bs)
+
+    @torch.no_grad()
+    def act(self, sim: BatchedSim, bs: np.ndarray) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+        obs = self.observe(sim, bs)
+        o = torch.from_numpy(obs)
+        actions, log_probs = self.module.act(o, generator=self.generator)
+        values = self.module.value(o)
+        extras = {"obs": obs, "action": actions.numpy(), "log_prob": log_probs.numpy(), "value": values.numpy()}
+        applied = actions.numpy() + self.base_action(sim) if self.residual else actions.numpy()
+        return applied, extras
+
+    @torch.no_grad()
+    def mean_action(self, sim: BatchedSim, bs: np.ndarray) -> np.ndarray:
+        """The deterministic PD targets [M, A] (evaluation)."""
+        mean = self.module.mean(torch.from_numpy(self.observe(sim, bs))).numpy()
+        return mean + self.base_action(sim) if self.residual else mean
