@@ -266,7 +266,7 @@ class RolloutWorker:
             "envs": {
                 "qpos": sim._qpos.copy(),
                 "qvel": sim._qvel.copy(),
-                "qacc_warmstart": np.stack([d.qacc_warmstart.copy() for d in sim.datas]),
+                "qacc_warmstart": sim.qacc_warmstart.copy(),
                 "clip_id": sim.clip_id.copy(),
                 "start_frame": sim.start_frame.copy(),
                 "steps": sim.steps.copy(),
@@ -295,8 +295,7 @@ class RolloutWorker:
         self.ends = {k: int(c[f"ends.{k}"]) for k in self.ends}
         ids = np.arange(self.num_envs)
         sim.set_state(ids, envs["qpos"], envs["qvel"])
-        for d, w in zip(sim.datas, envs["qacc_warmstart"], strict=True):
-            d.qacc_warmstart[:] = w  # set_state zeroes the solver's warm start; the next step reads it
+        sim.qacc_warmstart[:] = envs["qacc_warmstart"]  # set_state zeroes the warm start; the next step reads it
         sim.clip_id[:] = envs["clip_id"]
         sim.start_frame[:] = envs["start_frame"]
         sim.steps[:] = envs["steps"]

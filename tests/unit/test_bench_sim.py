@@ -2,24 +2,83 @@
 
 import json
 
+import numpy as np
+import pytest
+
 from orchestrator.bench.__main__ import main
+from orchestrator.bench.sim import interleaved
 
 
 def test_bench_sim_json(tmp_path, capsys):
     out = tmp_path / "sim.json"
-    assert main(["sim", "--envs", "4", "--seconds", "0.3", "--json", "--out", str(out)]) == 0
+    argv = ["sim", "--envs", "4", "--seconds", "0.3", "--block-seconds", "0.05", "--sim-hz", "480,240"]
+    assert main([*argv, "--json", "--out", str(out)]) == 0
     printed = json.loads(capsys.readouterr().out)
     saved = json.loads(out.read_text())
     assert printed == saved
-    assert saved["substeps"] == 16 and saved["envs"] == 4
-    for key in ("random_policy", "mlp_policy"):
-        r = saved[key]
-        assert r["control_steps_per_s"] > 0
-        assert r["physics_steps_per_s"] == r["control_steps_per_s"] * 16
-        assert abs(r["physics_step_ratio"] - r["physics_steps_per_s"] / saved["raw_physics_steps_per_s"]) < 1e-9
+    assert saved["envs"] == 4 and saved["threads"] == 1 and saved["pairs"] == 3
+    assert [r["sim_hz"] for r in saved["rates"]] == [480, 240]
+    for rate, k in zip(saved["rates"], (16, 8), strict=True):
+        assert rate["substeps"] == k
+        for key in ("random_policy", "mlp_policy"):
+            r = rate[key]
+            assert r["pairs"] == 3
+            assert r["raw_physics_steps_per_s"] > 0 and r["control_steps_per_s"] > 0
+            assert r["physics_steps_per_s"] == pytest.approx(r["control_steps_per_s"] * k)
+            # The ratio is a median of pairwise ratios, inside its own quartiles.
+            q1, q3 = r["ratio_quartiles"]
+            assert 0 < q1 <= r["physics_step_ratio"] <= q3
+            assert r["batched_physics_steps"] > 0 and r["batched_physics_steps"] % k == 0
+            assert r["raw_physics_steps"] > 0 and r["raw_physics_steps"] % k == 0
+            assert r["bad_qacc_warnings"] >= 0 and r["raw_bad_qacc_warnings"] >= 0
+            assert r["episode_steps"] > 0 and r["raw_episode_steps"] > 0
+        assert (
+            rate["bad_qacc_warnings"]
+            == rate["random_policy"]["bad_qacc_warnings"] + rate["mlp_policy"]["bad_qacc_warnings"]
+        )
 
 
 def test_bench_sim_table(capsys):
-    assert main(["sim", "--envs", "2", "--seconds", "0.2"]) == 0
+    assert main(["sim", "--envs", "2", "--seconds", "0.2", "--block-seconds", "0.05", "--sim-hz", "240"]) == 0
     out = capsys.readouterr().out
-    assert "raw mj_step" in out and "MLP" in out and "ratio to raw" in out
+    assert "raw phys/s" in out and "MLP" in out and "ratio to raw" in out and "bad qacc" in out
+    assert "3 pairs of 0.05 s blocks" in out
+
+
+def test_bench_sim_refuses_bad_rates():
+    with pytest.raises(SystemExit):
+        main(["sim", "--sim-hz", "480,abc"])
+    with pytest.raises(SystemExit):
+        main(["sim", "--block-seconds", "0"])
+
+
+class _Side:
+    """A stand-in for either side of a pair: fixed rates, counts what it was asked."""
+
+    def __init__(self, rates, k=4):
+        self.rates, self.k = iter(rates), k
+        self.actions = [np.zeros((1, 2))]
+        self.calls = self.episodes = self.control_steps = 0
+        self.bad_qacc_warnings = 0
+        self.sim = self
+
+    def warning_counts(self):
+        return np.zeros(1, int)
+
+    def block(self, seconds):
+        self.calls += 1
+        self.control_steps += 1
+        self.episodes += 1
+        return next(self.rates)
+
+
+def test_interleaved_takes_the_median_of_pairwise_ratios():
+    # Warm-up block first, then three pairs; raw rates 100, 200, 400 and batched control rates
+    # 20, 50, 60 at K=4: pairwise ratios 0.8, 1.0, 0.6 (median 0.8), not median/median 0.9.
+    raw = _Side([1.0, 100.0, 200.0, 400.0])
+    batched = _Side([1.0, 20.0, 50.0, 60.0])
+    r = interleaved(raw, batched, pairs=3, block_seconds=0.0)
+    assert r["physics_step_ratio"] == pytest.approx(0.8)
+    assert r["raw_physics_steps_per_s"] == 200.0 and r["control_steps_per_s"] == 50.0
+    assert r["physics_steps_per_s"] == 200.0
+    assert r["ratio_quartiles"] == pytest.approx([0.7, 0.9])
