@@ -45,7 +45,7 @@ def rollout_of(trajs: tuple[Trajectory, ...], rewards: list[np.ndarray] | None) 
         rewards=reward,
         dones=np.concatenate([tr.done for tr in trajs], axis=1).astype(np.float32),
         last_obs=np.concatenate([tr.extras["last_obs"] for tr in trajs], axis=0),
-        values=cat("value"),
+        values=None,  # V(o) of the whole rollout in one batch, by the learner before it updates
         truncated=cat("truncated").astype(np.float32),
         final_obs=final,
     )
@@ -117,6 +117,11 @@ class DiscriminatorActor(LearnerActor):
         self.learner = DiscriminatorLearner(amp_dim(character), self.config, seed=seed_of(cfg, 6))
         self.rng = np.random.default_rng(seed_of(cfg, 7))
         self.last_rewards: dict[str, float] = {}
+
+    def set_lr(self, lr: float) -> None:
+        """Change the discriminator's step size (0 freezes it: the policy then trains on a fixed reward)."""
+        for group in self.learner.optimizer.param_groups:
+            group["lr"] = lr
 
     @staticmethod
     def transitions(tr: Trajectory) -> np.ndarray:

@@ -2,7 +2,7 @@
 
 A `Policy` maps the simulator's current state to actions for all M environments
 at once, and returns with them the per-environment numbers its learner needs
-(log-probabilities and values for PPO, nothing for the VAE controller). The
+(observations, samples and log-probabilities for PPO, nothing for the VAE controller). The
 worker hands each policy its random streams (`bind`), so one seed gives the same
 trajectories whichever process runs the worker.
 
@@ -136,7 +136,7 @@ class VAEPolicy(Policy):
 
 
 class GaussianPolicy(Policy):
-    """The PPO actor-critic; its extras are the observation, log π(a | o) and V(o) of each step."""
+    """The PPO actor-critic; its extras are the observation, the sampled action and log π(a | o) of each step."""
 
     observes = True
 
@@ -163,8 +163,8 @@ class GaussianPolicy(Policy):
         obs = self.observe(sim, bs)
         o = torch.from_numpy(obs)
         actions, log_probs = self.module.act(o, generator=self.generator)
-        values = self.module.value(o)
-        extras = {"obs": obs, "action": actions.numpy(), "log_prob": log_probs.numpy(), "value": values.numpy()}
+        # V(o) is left to the learner, which evaluates it in one batch over the whole rollout.
+        extras = {"obs": obs, "action": actions.numpy(), "log_prob": log_probs.numpy()}
         applied = actions.numpy() + self.base_action(sim) if self.residual else actions.numpy()
         return applied, extras
 

@@ -13,9 +13,11 @@ def main(argv: list[str] | None = None) -> int:
     sub = parser.add_subparsers(dest="what", required=True)
     sim = sub.add_parser("sim", help="raw MuJoCo stepping against the batched simulator")
     sim.add_argument("--envs", type=int, default=32, help="environments in the batched simulator")
-    sim.add_argument("--seconds", type=float, default=5.0, help="wall time of each measurement")
-    sim.add_argument("--sim-hz", type=float, default=480.0)
+    sim.add_argument("--seconds", type=float, default=10.0, help="wall time of each policy's measurement per rate")
+    sim.add_argument("--block-seconds", type=float, default=0.25, help="each raw or batched block; pairs alternate")
+    sim.add_argument("--sim-hz", default="480", help="comma-separated physics rates, e.g. 480,240,120")
     sim.add_argument("--control-hz", type=float, default=30.0)
+    sim.add_argument("--threads", type=int, default=1, help="threads stepping the batched simulator")
     sim.add_argument("--seed", type=int, default=0)
     learners = sub.add_parser("learners", help="each learner's update(batch): updates/s and share of matmul peak")
     learners.add_argument("--learners", help="comma-separated subset of world_model,vae,discriminator,ppo,task")
@@ -32,7 +34,27 @@ def main(argv: list[str] | None = None) -> int:
     pipeline.add_argument("--warmup", type=int, default=3, help="untimed iterations first")
     pipeline.add_argument("--envs", type=int, default=16, help="environments per rollout worker")
     pipeline.add_argument("--seed", type=int, default=0)
-    for p in (sim, learners, pipeline):
+    rollout = sub.add_parser("rollout", help="the rollout worker with each policy against raw mj_step, interleaved")
+    rollout.add_argument(
+        "--policies", default="vae,actor-critic", help="comma-separated: vae,vae-paper,actor-critic,tracker"
+    )
+    rollout.add_argument("--envs", type=int, default=32, help="environments of the worker")
+    rollout.add_argument("--seconds", type=float, default=10.0, help="interleaved time per policy and rate")
+    rollout.add_argument("--block-seconds", type=float, default=0.5, help="each raw or worker block")
+    rollout.add_argument("--sim-hz", default="480", help="comma-separated physics rates")
+    rollout.add_argument("--control-hz", type=float, default=30.0)
+    rollout.add_argument("--collect", type=int, default=16, help="control steps per collect call")
+    rollout.add_argument("--threads", type=int, default=1, help="threads stepping the batched simulator")
+    rollout.add_argument("--seed", type=int, default=0)
+    peer = sub.add_parser("peer", help="our tracker pipeline against RLlib's PPO, interleaved (needs .[peer])")
+    peer.add_argument("--envs", type=int, default=16, help="environments stepped as one batch, each side")
+    peer.add_argument("--hidden", default="1024,512", help="policy and value MLP sizes (AMP's)")
+    peer.add_argument("--batch", type=int, default=4096, help="environment steps per PPO iteration (AMP: 4096)")
+    peer.add_argument("--minibatch", type=int, default=256, help="SGD minibatch (AMP: 256)")
+    peer.add_argument("--rounds", type=int, default=5, help="interleaved timed rounds")
+    peer.add_argument("--warmup", type=int, default=1, help="untimed iterations of each side first")
+    peer.add_argument("--seed", type=int, default=0)
+    for p in (sim, learners, pipeline, rollout, peer):
         p.add_argument("--json", action="store_true", help="print JSON instead of the table")
         p.add_argument("--out", type=Path, help="also write the JSON to this file")
     args = parser.parse_args(argv)
@@ -40,9 +62,17 @@ def main(argv: list[str] | None = None) -> int:
     if args.what == "sim":
         from orchestrator.bench import sim as bench_sim
 
-        if args.envs < 1 or args.seconds <= 0:
-            parser.error("--envs must be at least 1 and --seconds positive")
-        result = bench_sim.run(args.envs, args.seconds, args.sim_hz, args.control_hz, args.seed)
+        try:
+            rates = [float(hz) for hz in args.sim_hz.split(",") if hz]
+        except ValueError:
+            parser.error(f"--sim-hz: expected numbers, got {args.sim_hz}")
+        if not rates or min(rates) <= 0:
+            parser.error("--sim-hz: expected positive rates")
+        if args.envs < 1 or args.seconds <= 0 or args.block_seconds <= 0 or args.threads < 1:
+            parser.error("--envs and --threads must be at least 1, --seconds and --block-seconds positive")
+        result = bench_sim.run(
+            args.envs, args.seconds, rates, args.control_hz, args.seed, args.block_seconds, args.threads
+        )
         text = bench_sim.format_table(result)
     elif args.what == "learners":
         from orchestrator.bench import learners as bench_learners
@@ -83,6 +113,38 @@ def main(argv: list[str] | None = None) -> int:
             lambda m: print(m, file=sys.stderr),
         )
         text = bench_pipeline.format_table(result)
+    elif args.what == "rollout":
+        from orchestrator.bench import rollout as bench_rollout
+
+        policies = [p for p in args.policies.split(",") if p]
+        if not set(policies) <= set(bench_rollout.POLICIES) or not policies:
+            parser.error(f"--policies: expected some of {','.join(bench_rollout.POLICIES)}, got {args.policies}")
+        try:
+            rates = [float(hz) for hz in args.sim_hz.split(",") if hz]
+        except ValueError:
+            parser.error(f"--sim-hz: expected numbers, got {args.sim_hz}")
+        if min(args.envs, args.collect, args.threads) < 1 or args.seconds <= 0 or args.block_seconds <= 0:
+            parser.error("--envs, --collect and --threads must be at least 1, --seconds and --block-seconds positive")
+        result = bench_rollout.run(
+            policies, args.envs, args.seconds, rates, args.control_hz, args.collect, args.seed, args.block_seconds,
+            args.threads,
+        )  # fmt: skip
+        text = bench_rollout.format_table(result)
+    elif args.what == "peer":
+        from orchestrator.bench import peer as bench_peer
+
+        try:
+            hidden = tuple(int(h) for h in args.hidden.split(",") if h)
+        except ValueError:
+            parser.error(f"--hidden: expected integers, got {args.hidden}")
+        if min(args.envs, args.batch, args.minibatch, args.rounds) < 1 or args.warmup < 0 or not hidden:
+            parser.error("--envs, --batch, --minibatch and --rounds must be at least 1, --warmup non-negative")
+        try:
+            result = bench_peer.run(args.envs, hidden, args.batch, args.minibatch, args.rounds, args.warmup, args.seed)
+        except ImportError as e:
+            print(e, file=sys.stderr)
+            return 2
+        text = bench_peer.format_table(result)
     else:  # pragma: no cover - argparse refuses unknown commands
         parser.error(f"unknown benchmark {args.what}")
 

@@ -68,3 +68,28 @@ def test_parallel_sweep_logs_through_a_local_tracking_server(tmp_path):
     uploaded = {p.name for p in (sweep_dir / "mlartifacts").rglob("*")}
     assert {"comparison.png", "config.json"} <= uploaded  # artifacts went through the server's proxy
     assert "--artifacts-destination" in proc.stdout
+
+
+@pytest.mark.slow
+def test_ablation_gp_at_smoke_scale_compares_four_penalties_with_curves_and_the_paper(tmp_path):
+    sweep_dir = tmp_path / "sweep"
+    command = [sys.executable, "-m", "orchestrator", "+experiment=ablation_gp", "scale=smoke", "progress=false"]
+    proc = subprocess.run(
+        command + [f"hydra.sweep.dir={sweep_dir}"], cwd=ROOT, capture_output=True, text=True, timeout=600
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    info = json.loads((sweep_dir / "sweep.json").read_text())
+    client = MlflowClient(info["uri"])
+    parent = client.get_run(info["parent_run_id"])
+    children = client.search_runs(
+        [parent.info.experiment_id], filter_string=f"tags.mlflow.parentRunId = '{parent.info.run_id}'"
+    )
+    assert sorted(float(c.data.params["algo.discriminator.w_gp"]) for c in children) == [0.0, 1.0, 10.0, 40.0]
+    assert {c.data.params["algo.discriminator.loss"] for c in children} == {"lsgan"}
+    assert {c.data.params["algo.discriminator.gp_on"] for c in children} == {"data"}
+    assert all(c.data.tags["algo"] == "amp" and "eval/pose_error_dtw" in c.data.metrics for c in children)
+    artifacts = {a.path for a in client.list_artifacts(parent.info.run_id)}
+    assert {"comparison.png", "curves.png", "comparison.md", "comparison.json"} <= artifacts
+    table = (sweep_dir / "comparison.md").read_text()
+    assert "| 40.0 | 1 |" in table and "pose error after DTW (m)" in table and "walk 0.030 m" in table
+    assert "final episode return" in table  # the learning curves' summary per point

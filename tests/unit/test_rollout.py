@@ -129,3 +129,39 @@ def test_windows_from_real_trajectories_run_across_collects(character, walk_run,
     for window in batch.states:
         for j in range(12):
             np.testing.assert_array_equal(successor[window[j].tobytes()], window[j + 1])
+
+
+def test_one_worker_serves_the_vae_controller_and_the_actor_critic(character, walk_run, weights):
+    """The same RolloutWorker runs either policy; PPO's extras and AMP's Φ come with the actor-critic's."""
+    from workers.models.actor_critic import ActorCritic
+    from workers.policies import GaussianPolicy
+    from workers.rollout import AMPFeatures, ImitationReward
+    from workers.sim.features import amp_dim
+
+    vae = make_worker(character, walk_run, weights).collect(10)
+    assert set(vae.extras) == {"truncated"}  # the VAE's learners need only the body states and actions
+
+    s_dim = 16 * character.num_bodies + 3
+    module = ActorCritic(2 * s_dim, character.num_actions, action_std=0.05, policy_hidden=(32,), value_hidden=(32,))
+    recorders = [AMPFeatures(character), ImitationReward(character)]
+    policy = GaussianPolicy(module, obs="imitation", residual=True)
+    worker = RolloutWorker(character, walk_run, M, policy, seed=2, recorders=recorders)
+    worker.set_weights(Weights(3, module.state_dict()))
+    traj = worker.collect(40)
+    x = traj.extras
+    assert x["obs"].shape == (40, M, 2 * s_dim) and x["log_prob"].shape == (40, M)
+    assert x["amp_obs"].shape == x["amp_next_obs"].shape == (40, M, amp_dim(character))
+    assert x["last_obs"].shape == (M, 2 * s_dim) and traj.version == 3
+    # The PD targets applied are the reference's next pose plus the sampled offset.
+    t, m = 0, 0
+    ref = walk_run.state(traj.clip_id[t : t + 1, m], traj.frame[t : t + 1, m] + 1)
+    np.testing.assert_allclose(traj.actions[t, m], character.qpos_to_action(ref.qpos)[0] + x["action"][t, m], atol=1e-5)
+    # Φ(s') of a step is Φ(s) of the next one unless the environment was reset in between.
+    cont = ~traj.done[:-1]
+    np.testing.assert_allclose(x["amp_next_obs"][:-1][cont], x["amp_obs"][1:][cont], atol=1e-6)
+    assert ((x["reward"] >= 0) & (x["reward"] <= 1)).all() and x["reward"].max() > 0.01
+    np.testing.assert_allclose(np.prod([x[f"reward/{k}"] for k in ("pose", "velocity", "end_effector", "root")], 0),
+                               x["reward"], rtol=1e-4, atol=1e-30)  # fmt: skip
+    # log π(a | o) recorded while acting is the policy's log-probability of the recorded sample.
+    lp = module.log_prob(torch.from_numpy(x["obs"][5]), torch.from_numpy(x["action"][5]))
+    np.testing.assert_allclose(lp.detach().numpy(), x["log_prob"][5], rtol=1e-4, atol=1e-4)

@@ -203,7 +203,12 @@ class PPOLearner(Learner):
         steps, envs = rewards.shape
         with torch.no_grad():
             values = r["values"] if r["values"] is not None else self.module.value(obs)
-            next_values = self.module.value(r["final_obs"]) if r["final_obs"] is not None else None
+            next_values = None
+            if r["final_obs"] is not None:  # V of the observations reached at time limits only
+                next_values = torch.zeros_like(rewards)
+                cut = r["truncated"] > 0
+                if bool(cut.any()):
+                    next_values[cut] = self.module.value(r["final_obs"][cut])
             advantages, returns = compute_gae(
                 rewards,
                 values,

@@ -1,0 +1,154 @@
+"""`bench peer`: our tracker pipeline against RLlib 2.60's PPO on the same humanoid, interleaved in one run.
+
+Both sides train the same job, a PPO imitation policy on the walk clip with the
+tracker's reward (`workers.rewards`), with the same policy and value MLP sizes,
+the same batch (train batch and minibatch, one epoch), the same number of
+environments stepped as one `BatchedSim`, one torch thread, in this one process
+(RLlib samples in its local env runner, `orchestrator.bench.peer_rllib`; ours runs
+the local runtime with one rollout worker). Timed blocks alternate, ours then
+RLlib's, and each pair gives a ratio; the table reports each side's median rate
+and the median of the pairwise ratios, so that drift of a shared machine cancels.
+
+- end to end: one training iteration (collect the batch, PPO update, weights
+  published to the workers): our `Trainer.step()`, RLlib's `algo.train()`.
+- sampling only: the batch's environment steps with policy inference: our
+  `RolloutWorker.collect`, RLlib's `env_runner.sample`.
+
+Differences that remain: RLlib learns its action std (ours is fixed), normalises
+actions into [-π, π], and its policy acts in absolute PD targets, ours as offsets
+from the reference pose (the tracker's choice); neither changes the work per step.
+"""
+
+from __future__ import annotations
+
+import os
+import platform
+import statistics
+import time
+from pathlib import Path
+from tempfile import TemporaryDirectory
+from typing import Any
+
+from hydra import compose, initialize_config_dir
+
+CONF = Path(__file__).resolve().parents[2] / "conf"
+
+
+def _our_trainer(tmp: str, num_envs: int, hidden: tuple[int, ...], batch: int, minibatch: int, seed: int):
+    from orchestrator.build import build_runtime
+    from orchestrator.components import load_world
+    from orchestrator.loop import Trainer
+    from orchestrator.schema import register, validate
+    from orchestrator.tracking.base import NoOpTracker
+
+    register()
+    sizes = "[" + ",".join(str(h) for h in hidden) + "]"
+    overrides = [
+        "algo=tracker",
+        "scale=paper",
+        "motion=walk",
+        "runtime=local",
+        "runtime.rollout_workers=1",
+        f"runtime.envs_per_worker={num_envs}",
+        f"algo.loop.collect_steps={max(1, batch // num_envs)}",
+        f"algo.ppo.policy_hidden={sizes}",
+        f"algo.ppo.value_hidden={sizes}",
+        f"algo.ppo.minibatch_size={minibatch}",
+        "algo.ppo.epochs=1",
+        "algo.loop.max_episode_steps=300",  # the gymnasium adapter's default episode cap
+        "tracking=off",
+        "progress=false",
+        f"seed={seed}",
+        f"run_dir={tmp}",
+    ]
+    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+        cfg = validate(compose("config", overrides=overrides))
+    character, _ = load_world(cfg)
+    rt = build_runtime(cfg)
+    trainer = Trainer(cfg, rt, NoOpTracker(), character)
+    trainer.method.start(trainer)
+    return cfg, rt, trainer
+
+
+def run(
+    num_envs: int, hidden: tuple[int, ...], batch: int, minibatch: int, rounds: int, warmup: int, seed: int
+) -> dict[str, Any]:
+    import torch
+
+    from orchestrator.bench import peer_rllib
+
+    ray, _, _ = peer_rllib._rllib()  # a clear error when the extra is not installed
+    torch.set_num_threads(1)
+    started = not ray.is_initialized()
+    if started:
+        ray.init(include_dashboard=False, log_to_driver=False, logging_level="WARNING")
+    env_config = {"max_episode_steps": 300}
+    algo = None
+    with TemporaryDirectory() as tmp:
+        cfg, rt, trainer = _our_trainer(tmp, num_envs, hidden, batch, minibatch, seed)
+        try:
+            algo = peer_rllib.build_config(num_envs, hidden, batch, minibatch, seed, 0, env_config).build_algo()
+            worker = rt.components["rollout-0"]
+            steps = cfg.algo.loop.collect_steps
+            last = None
+            for _ in range(warmup):
+                trainer.step()
+                last = algo.train()
+            pairs: dict[str, list[tuple[float, float]]] = {"end_to_end": [], "sampling": []}
+            for _ in range(rounds):
+                t0 = time.perf_counter()
+                s0 = trainer.state.samples
+                trainer.step()
+                ours = (trainer.state.samples - s0) / (time.perf_counter() - t0)
+                before = peer_rllib._lifetime_steps(last)
+                t0 = time.perf_counter()
+                last = algo.train()
+                theirs_steps = peer_rllib._lifetime_steps(last) - before
+                theirs = theirs_steps / (time.perf_counter() - t0)
+                pairs["end_to_end"].append((ours, theirs))
+                t0 = time.perf_counter()
+                trajectory = worker.collect(steps)
+                ours = trajectory.num_transitions / (time.perf_counter() - t0)
+                n, secs = peer_rllib._time_sampling(algo, 1, batch, 0)
+                pairs["sampling"].append((ours, n / secs))
+        finally:
+            if algo is not None:
+                algo.stop()
+            rt.shutdown()
+            if started:
+                ray.shutdown()
+    out: dict[str, Any] = {
+        "benchmark": "peer",
+        "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version()},
+        "rllib_version": ray.__version__,
+        "num_envs": num_envs,
+        "hidden": list(hidden),
+        "train_batch_size": batch,
+        "minibatch_size": minibatch,
+        "rounds": rounds,
+        "torch_threads": 1,
+    }
+    for key, values in pairs.items():
+        out[key] = {
+            "ours_steps_per_s": statistics.median(o for o, _ in values),
+            "rllib_steps_per_s": statistics.median(t for _, t in values),
+            "ratio_median": statistics.median(o / t for o, t in values),
+            "pairs": values,
+        }
+    return out
+
+
+def format_table(r: dict[str, Any]) -> str:
+    lines = [
+        f"peer benchmark: tracker on walk, {r['num_envs']} envs, MLPs {r['hidden']}, batch {r['train_batch_size']}"
+        f"/{r['minibatch_size']}, 1 epoch, 1 torch thread, {r['rounds']} interleaved rounds, "
+        f"RLlib {r['rllib_version']}",
+        f"{'measurement':<14}{'ours steps/s':>14}{'RLlib steps/s':>15}{'ratio (median of pairs)':>26}",
+    ]
+    for key in ("sampling", "end_to_end"):
+        x = r[key]
+        lines.append(
+            f"{key.replace('_', ' '):<14}{x['ours_steps_per_s']:>14,.0f}{x['rllib_steps_per_s']:>15,.0f}"
+            f"{x['ratio_median']:>26.2f}"
+        )
+    return "\n".join(lines)
