@@ -109,6 +109,11 @@ class LoopConfig:
     end_on_fall: bool = True
     # Cap on a collection episode's control steps (ControlVAE 512); 0: none.
     max_episode_steps: int = 512
+    # PPO methods: collect the next batch while the learners train on this one (on Ray the workers
+    # then never wait for an update). Each batch is one iteration older than the policy it trains,
+    # which PPO's clipped importance ratio tolerates (asynchronous PPO variants do the same); false
+    # keeps PPO strictly on-policy. ControlVAE always overlaps (`staleness` bounds it).
+    overlap: bool = False
 
     def __post_init__(self) -> None:
         if self.max_episode_steps < 0:

@@ -5,8 +5,10 @@ discriminator). Rollout workers run the actor-critic (`GaussianPolicy`) on the
 method's observation.
 
 One iteration: every worker collects `algo.loop.collect_steps` control steps of
-its environments with the newest weights (PPO is on-policy: collection is
-synchronous, every worker is refreshed to the newest version first); the
+its environments with the newest weights (PPO is on-policy: by default collection
+is synchronous, every worker is refreshed to the newest version first; with
+`algo.loop.overlap` the next batch is collected while the learners train on this
+one, one iteration behind); the
 trajectories go to the learners directly (object references on Ray); the method
 turns them into rewards (`rewards`, None for rewards recorded by the workers);
 PPO takes one iteration on them; the new weights are published once.
@@ -21,26 +23,11 @@ from orchestrator.algos import Component, Method
 from orchestrator.components import load_world
 from orchestrator.components_ppo import PPOActor
 from orchestrator.evaluate import evaluate_imitation
-from workers.models.actor_critic import ActorCritic
+from workers.learners.ppo import build_actor_critic
 from workers.policies import GaussianPolicy, observation_dim
 from workers.sim.features import StateLayout
 
 METRIC_PREFIX = {"discriminator": "disc"}  # DESIGN's metric namespaces where they differ from the key
-
-
-def actor_critic(cfg, character, obs: str) -> ActorCritic:
-    """The network a PPOConfig describes, as workers and evaluation build it (the learner's twin)."""
-    p = cfg.algo.ppo
-    return ActorCritic(
-        observation_dim(obs, StateLayout(character.num_bodies).dim),
-        character.num_actions,
-        action_std=p.action_std,
-        policy_hidden=p.policy_hidden,
-        value_hidden=p.value_hidden,
-        activation=p.activation,
-        policy_out_scale=p.policy_out_scale,
-        obs_norm_max_count=p.obs_norm_max_count,
-    )
 
 
 class OnPolicy(Method):
@@ -52,6 +39,7 @@ class OnPolicy(Method):
     def __init__(self, cfg, character):
         super().__init__(cfg, character)
         self.world = None
+        self.pending: list[Any] = []  # the batch being collected, with `algo.loop.overlap`
 
     def components(self) -> list[Component]:
         obs_dim = observation_dim(self.observation, StateLayout(self.character.num_bodies).dim)
@@ -59,7 +47,9 @@ class OnPolicy(Method):
 
     @classmethod
     def make_policy(cls, cfg, character) -> GaussianPolicy:
-        return GaussianPolicy(actor_critic(cfg, character, cls.observation), cls.observation, cls.residual)
+        obs_dim = observation_dim(cls.observation, StateLayout(character.num_bodies).dim)
+        module = build_actor_critic(obs_dim, character.num_actions, cfg.algo.ppo)
+        return GaussianPolicy(module, cls.observation, cls.residual)
 
     def rewards(self, t, trajectories: list[Any]) -> tuple[Any, dict[str, Any]]:
         """(A future of the rewards [T, M] per trajectory, or None to use the recorded `reward`;
@@ -71,11 +61,17 @@ class OnPolicy(Method):
 
     def start(self, t) -> None:
         self.publish(t)
+        if self.cfg.algo.loop.overlap:
+            self.pending = t.collect(self.cfg.algo.loop.collect_steps, staleness=0)
 
     def step(self, t) -> tuple[int, dict[str, float]]:
         cfg, rt = self.cfg, t.rt
         t0 = time.perf_counter()
-        trajectories = t.collect(cfg.algo.loop.collect_steps, staleness=0)
+        steps = cfg.algo.loop.collect_steps
+        if cfg.algo.loop.overlap:  # this batch was collected last iteration; the next starts now
+            trajectories, self.pending = self.pending, t.collect(steps, staleness=0)
+        else:
+            trajectories = t.collect(steps, staleness=0)
         rewards, others = self.rewards(t, trajectories)
         ppo = rt.call(t.handles["ppo"], "train", *trajectories, rewards=rewards)
         metrics: dict[str, float] = {}
@@ -93,6 +89,9 @@ class OnPolicy(Method):
         collected = cfg.algo.loop.collect_steps * cfg.runtime.envs_per_worker * len(t.workers)
         metrics.update({"throughput/collect_and_update_s": t_update, "throughput/publish_s": time.perf_counter() - t1})
         return collected, metrics
+
+    def finish(self, t) -> None:
+        t.rt.get(self.pending)  # let an overlapping collection finish before the final checkpoint
 
     def evaluate(self, t, final: bool) -> dict[str, float]:
         if self.world is None:  # the driver's own character and library, loaded once

@@ -54,6 +54,9 @@ def main(argv: list[str] | None = None) -> int:
     peer.add_argument("--rounds", type=int, default=5, help="interleaved timed rounds")
     peer.add_argument("--warmup", type=int, default=1, help="untimed iterations of each side first")
     peer.add_argument("--seed", type=int, default=0)
+    peer.add_argument("--ours", default="ray", choices=("local", "ray"), help="our runtime")
+    peer.add_argument("--workers", type=int, default=2, help="our rollout workers (the envs are split among them)")
+    peer.add_argument("--overlap", action="store_true", help="ours: collect the next batch while PPO trains")
     for p in (sim, learners, pipeline, rollout, peer):
         p.add_argument("--json", action="store_true", help="print JSON instead of the table")
         p.add_argument("--out", type=Path, help="also write the JSON to this file")
@@ -140,7 +143,10 @@ def main(argv: list[str] | None = None) -> int:
         if min(args.envs, args.batch, args.minibatch, args.rounds) < 1 or args.warmup < 0 or not hidden:
             parser.error("--envs, --batch, --minibatch and --rounds must be at least 1, --warmup non-negative")
         try:
-            result = bench_peer.run(args.envs, hidden, args.batch, args.minibatch, args.rounds, args.warmup, args.seed)
+            result = bench_peer.run(
+                args.envs, hidden, args.batch, args.minibatch, args.rounds, args.warmup, args.seed,
+                args.ours, args.workers, args.overlap,
+            )  # fmt: skip
         except ImportError as e:
             print(e, file=sys.stderr)
             return 2

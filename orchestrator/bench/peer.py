@@ -12,7 +12,14 @@ and the median of the pairwise ratios, so that drift of a shared machine cancels
 - end to end: one training iteration (collect the batch, PPO update, weights
   published to the workers): our `Trainer.step()`, RLlib's `algo.train()`.
 - sampling only: the batch's environment steps with policy inference: our
-  `RolloutWorker.collect`, RLlib's `env_runner.sample`.
+  workers' `collect` calls (at once, on Ray), RLlib's `env_runner.sample`.
+
+Our side runs as configured: `--ours local` (one process, one worker: the same
+layout as RLlib's local env runner) or `--ours ray` with `--workers` rollout
+actors and the PPO learner actor on the machine's cores, optionally with
+`--overlap` (the next batch is collected while the learner trains). RLlib runs
+its fastest layout measured here, sampling in the driver (0 env runners; one
+remote runner measured slower, see `peer_rllib`).
 
 Differences that remain: RLlib learns its action std (ours is fixed), normalises
 actions into [-π, π], and its policy acts in absolute PD targets, ours as offsets
@@ -34,7 +41,17 @@ from hydra import compose, initialize_config_dir
 CONF = Path(__file__).resolve().parents[2] / "conf"
 
 
-def _our_trainer(tmp: str, num_envs: int, hidden: tuple[int, ...], batch: int, minibatch: int, seed: int):
+def _our_trainer(
+    tmp: str,
+    num_envs: int,
+    hidden: tuple[int, ...],
+    batch: int,
+    minibatch: int,
+    seed: int,
+    runtime: str = "local",
+    workers: int = 1,
+    overlap: bool = False,
+):
     from orchestrator.build import build_runtime
     from orchestrator.components import load_world
     from orchestrator.loop import Trainer
@@ -47,10 +64,11 @@ def _our_trainer(tmp: str, num_envs: int, hidden: tuple[int, ...], batch: int, m
         "algo=tracker",
         "scale=paper",
         "motion=walk",
-        "runtime=local",
-        "runtime.rollout_workers=1",
-        f"runtime.envs_per_worker={num_envs}",
+        f"runtime={runtime}",
+        f"runtime.rollout_workers={workers}",
+        f"runtime.envs_per_worker={max(1, num_envs // workers)}",
         f"algo.loop.collect_steps={max(1, batch // num_envs)}",
+        f"algo.loop.overlap={str(overlap).lower()}",
         f"algo.ppo.policy_hidden={sizes}",
         f"algo.ppo.value_hidden={sizes}",
         f"algo.ppo.minibatch_size={minibatch}",
@@ -71,7 +89,16 @@ def _our_trainer(tmp: str, num_envs: int, hidden: tuple[int, ...], batch: int, m
 
 
 def run(
-    num_envs: int, hidden: tuple[int, ...], batch: int, minibatch: int, rounds: int, warmup: int, seed: int
+    num_envs: int,
+    hidden: tuple[int, ...],
+    batch: int,
+    minibatch: int,
+    rounds: int,
+    warmup: int,
+    seed: int,
+    runtime: str = "local",
+    workers: int = 1,
+    overlap: bool = False,
 ) -> dict[str, Any]:
     import torch
 
@@ -81,14 +108,14 @@ def run(
     torch.set_num_threads(1)
     started = not ray.is_initialized()
     if started:
-        ray.init(include_dashboard=False, log_to_driver=False, logging_level="WARNING")
+        # Logical CPUs for our Ray actors (workers and learner); all run on this machine's cores.
+        ray.init(num_cpus=max(os.cpu_count() or 1, workers + 2), include_dashboard=False, log_to_driver=False)
     env_config = {"max_episode_steps": 300}
     algo = None
     with TemporaryDirectory() as tmp:
-        cfg, rt, trainer = _our_trainer(tmp, num_envs, hidden, batch, minibatch, seed)
+        cfg, rt, trainer = _our_trainer(tmp, num_envs, hidden, batch, minibatch, seed, runtime, workers, overlap)
         try:
             algo = peer_rllib.build_config(num_envs, hidden, batch, minibatch, seed, 0, env_config).build_algo()
-            worker = rt.components["rollout-0"]
             steps = cfg.algo.loop.collect_steps
             last = None
             for _ in range(warmup):
@@ -107,8 +134,8 @@ def run(
                 theirs = theirs_steps / (time.perf_counter() - t0)
                 pairs["end_to_end"].append((ours, theirs))
                 t0 = time.perf_counter()
-                trajectory = worker.collect(steps)
-                ours = trajectory.num_transitions / (time.perf_counter() - t0)
+                trajectories = rt.get([rt.call(w, "collect", steps) for w in trainer.workers])
+                ours = sum(tr.num_transitions for tr in trajectories) / (time.perf_counter() - t0)
                 n, secs = peer_rllib._time_sampling(algo, 1, batch, 0)
                 pairs["sampling"].append((ours, n / secs))
         finally:
@@ -127,6 +154,8 @@ def run(
         "minibatch_size": minibatch,
         "rounds": rounds,
         "torch_threads": 1,
+        "ours": {"runtime": runtime, "rollout_workers": workers, "overlap": overlap},
+        "rllib": {"env_runners": 0},
     }
     for key, values in pairs.items():
         out[key] = {
@@ -142,7 +171,8 @@ def format_table(r: dict[str, Any]) -> str:
     lines = [
         f"peer benchmark: tracker on walk, {r['num_envs']} envs, MLPs {r['hidden']}, batch {r['train_batch_size']}"
         f"/{r['minibatch_size']}, 1 epoch, 1 torch thread, {r['rounds']} interleaved rounds, "
-        f"RLlib {r['rllib_version']}",
+        f"RLlib {r['rllib_version']} (0 env runners); ours: runtime={r['ours']['runtime']}, "
+        f"{r['ours']['rollout_workers']} worker(s), overlap={r['ours']['overlap']}",
         f"{'measurement':<14}{'ours steps/s':>14}{'RLlib steps/s':>15}{'ratio (median of pairs)':>26}",
     ]
     for key in ("sampling", "end_to_end"):

@@ -127,6 +127,21 @@ class PPOBatch:
         return self.log_probs.shape[0]
 
 
+def build_actor_critic(obs_dim: int, act_dim: int, config: PPOConfig) -> ActorCritic:
+    """The network a PPOConfig describes (the learner, rollout workers and evaluation build it alike)."""
+    c = config
+    return ActorCritic(
+        obs_dim,
+        act_dim,
+        action_std=c.action_std,
+        policy_hidden=c.policy_hidden,
+        value_hidden=c.value_hidden,
+        activation=c.activation,
+        policy_out_scale=c.policy_out_scale,
+        obs_norm_max_count=c.obs_norm_max_count,
+    )
+
+
 # Metrics that are counters or settings: report the last value rather than the mean over steps.
 _LAST = ("skipped_updates", "lr")
 
@@ -138,16 +153,7 @@ class PPOLearner(Learner):
         cfg = config if config is not None else PPOConfig()
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(cfg.seed)
-            module = ActorCritic(
-                obs_dim,
-                act_dim,
-                action_std=cfg.action_std,
-                policy_hidden=cfg.policy_hidden,
-                value_hidden=cfg.value_hidden,
-                activation=cfg.activation,
-                policy_out_scale=cfg.policy_out_scale,
-                obs_norm_max_count=cfg.obs_norm_max_count,
-            )
+            module = build_actor_critic(obs_dim, act_dim, cfg)
         module.to(device)
         groups = [
             {"params": list(module.policy.parameters()), "lr": cfg.policy_lr},

@@ -101,7 +101,25 @@ def _causes(result: StepResult) -> dict[str, np.ndarray]:
     return {k: getattr(result, k) for k in _CAUSES}
 
 
-class HumanoidImitationEnv(gymnasium.Env):
+class _CoreAccess:
+    """The simulator, character and library behind an adapter."""
+
+    _core: _Tracking
+
+    @property
+    def sim(self) -> BatchedSim:
+        return self._core.sim
+
+    @property
+    def character(self) -> Character:
+        return self._core.character
+
+    @property
+    def library(self) -> MotionLibrary:
+        return self._core.library
+
+
+class HumanoidImitationEnv(_CoreAccess, gymnasium.Env):
     """One humanoid tracking a reference clip (see the module docstring).
 
     Args:
@@ -128,18 +146,6 @@ class HumanoidImitationEnv(gymnasium.Env):
         self.observation_space = self._core.observation_space
         self.action_space = self._core.action_space
 
-    @property
-    def sim(self) -> BatchedSim:
-        return self._core.sim
-
-    @property
-    def character(self) -> Character:
-        return self._core.character
-
-    @property
-    def library(self) -> MotionLibrary:
-        return self._core.library
-
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
         super().reset(seed=seed)
         self.sim.rng = self.np_random  # seeded: the stream of np.random.default_rng(seed)
@@ -152,7 +158,7 @@ class HumanoidImitationEnv(gymnasium.Env):
         return obs[0], float(reward[0]), bool(terminated[0]), bool(truncated[0]), info
 
 
-class HumanoidImitationVectorEnv(VectorEnv):
+class HumanoidImitationVectorEnv(_CoreAccess, VectorEnv):
     """N humanoids in one `BatchedSim`, stepped as a batch, with autoreset.
 
     Args: those of `HumanoidImitationEnv`, plus num_envs and autoreset_mode
@@ -189,18 +195,6 @@ class HumanoidImitationVectorEnv(VectorEnv):
         self.observation_space = batch_space(self.single_observation_space, num_envs)
         self.action_space = batch_space(self.single_action_space, num_envs)
         self._autoreset = np.zeros(num_envs, bool)
-
-    @property
-    def sim(self) -> BatchedSim:
-        return self._core.sim
-
-    @property
-    def character(self) -> Character:
-        return self._core.character
-
-    @property
-    def library(self) -> MotionLibrary:
-        return self._core.library
 
     def reset(self, *, seed: int | Sequence[int | None] | None = None, options: dict[str, Any] | None = None):
         """Reset every environment. One generator drives the batch, so a list of seeds is
