@@ -50,7 +50,7 @@ def sim_config(cfg: Config) -> SimConfig:
 def collection_sim_config(cfg: Config) -> SimConfig:
     """The simulator as the rollout workers run it: the loop's termination rules."""
     loop = cfg.algo.loop
-    config = replace(sim_config(cfg), max_episode_steps=loop.max_episode_steps)
+    config = replace(sim_config(cfg), max_episode_steps=loop.max_episode_steps, threads=cfg.runtime.sim_threads)
     return config if loop.end_on_fall else replace(config, allowed_contacts=())
 
 

@@ -3,7 +3,7 @@
 Both sides train the same job, a PPO imitation policy on the walk clip with the
 tracker's reward (`workers.rewards`), with the same policy and value MLP sizes,
 the same batch (train batch and minibatch, one epoch), the same number of
-environments stepped as one `BatchedSim`, one torch thread, in this one process
+environments stepped as `BatchedSim`s, one torch thread per process
 (RLlib samples in its local env runner, `orchestrator.bench.peer_rllib`; ours runs
 the local runtime with one rollout worker). Timed blocks alternate, ours then
 RLlib's, and each pair gives a ratio; the table reports each side's median rate
@@ -99,6 +99,7 @@ def run(
     runtime: str = "local",
     workers: int = 1,
     overlap: bool = False,
+    per_round: int = 2,
 ) -> dict[str, Any]:
     import torch
 
@@ -121,15 +122,21 @@ def run(
             for _ in range(warmup):
                 trainer.step()
                 last = algo.train()
+            rt.get(getattr(trainer.method, "pending", []))
             pairs: dict[str, list[tuple[float, float]]] = {"end_to_end": [], "sampling": []}
             for _ in range(rounds):
+                # Our block ends when our actors are idle again (an overlapping collection is waited
+                # for and timed here), so neither side's blocks run on the other's time.
                 t0 = time.perf_counter()
                 s0 = trainer.state.samples
-                trainer.step()
+                for _ in range(per_round):
+                    trainer.step()
+                rt.get(getattr(trainer.method, "pending", []))
                 ours = (trainer.state.samples - s0) / (time.perf_counter() - t0)
                 before = peer_rllib._lifetime_steps(last)
                 t0 = time.perf_counter()
-                last = algo.train()
+                for _ in range(per_round):
+                    last = algo.train()
                 theirs_steps = peer_rllib._lifetime_steps(last) - before
                 theirs = theirs_steps / (time.perf_counter() - t0)
                 pairs["end_to_end"].append((ours, theirs))
@@ -153,6 +160,7 @@ def run(
         "train_batch_size": batch,
         "minibatch_size": minibatch,
         "rounds": rounds,
+        "iterations_per_round": per_round,
         "torch_threads": 1,
         "ours": {"runtime": runtime, "rollout_workers": workers, "overlap": overlap},
         "rllib": {"env_runners": 0},

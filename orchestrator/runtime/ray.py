@@ -7,6 +7,7 @@ cluster instead ("auto" or "ray://host:port").
 
 from __future__ import annotations
 
+import logging
 import os
 import uuid
 from typing import Any
@@ -16,6 +17,8 @@ from ray.util.placement_group import placement_group, remove_placement_group
 from ray.util.scheduling_strategies import PlacementGroupSchedulingStrategy
 
 from orchestrator.runtime.base import Resources, Runtime
+
+log = logging.getLogger(__name__)
 
 
 class RayRuntime(Runtime):
@@ -43,6 +46,7 @@ class RayRuntime(Runtime):
         self.context = None
         self.group = None
         self._next_bundle = 0
+        self._warned_state_api = False
 
     def reserve(self, bundles: list[Resources]) -> None:
         """Start Ray if needed and reserve every component's resources at once (a placement group)."""
@@ -92,9 +96,18 @@ class RayRuntime(Runtime):
         ray.kill(handle, no_restart=False)
 
     def restarts(self, handle: Any) -> int:
+        """Ray's restart count of an actor; 0 (said once) when the state API is unreachable
+        (a Ray started without its dashboard)."""
         from ray.util.state import get_actor
+        from ray.util.state.exception import RayStateApiException
 
-        state = get_actor(handle._actor_id.hex())
+        try:
+            state = get_actor(handle._actor_id.hex())
+        except (RayStateApiException, ConnectionError) as e:
+            if not self._warned_state_api:
+                log.warning("actor restart counts unavailable (%s); reporting 0", type(e).__name__)
+                self._warned_state_api = True
+            return 0
         return int(getattr(state, "num_restarts", 0) or 0) if state is not None else 0
 
     def dashboard_url(self) -> str | None:
