@@ -56,7 +56,14 @@ def final_table(rows: list[dict[str, Any]], compare_by: str, metrics: dict[str, 
     return "\n".join(lines) + "\n"
 
 
-def plot_final(rows: list[dict[str, Any]], compare_by: str, metrics: dict[str, str], path: Path) -> None:
+def plot_final(
+    rows: list[dict[str, Any]],
+    compare_by: str,
+    metrics: dict[str, str],
+    path: Path,
+    reference: dict[str, float] | None = None,
+) -> None:
+    """reference: the paper's value of some metrics, drawn as a dashed line."""
     groups = group(rows, compare_by)
     names = list(groups)
     fig = Figure(figsize=(4.5 * len(metrics), 3.5))
@@ -65,9 +72,13 @@ def plot_final(rows: list[dict[str, Any]], compare_by: str, metrics: dict[str, s
         vals = [_values(groups[n], key) for n in names]
         means = [v.mean() if len(v) else np.nan for v in vals]
         stds = [v.std() if len(v) else 0.0 for v in vals]
-        ax.bar(names, means, yerr=stds, capsize=4, color="tab:blue")
+        ax.bar(np.arange(len(names)), means, yerr=stds, capsize=4, color="tab:blue")
+        ax.set_xticks(np.arange(len(names)), names)  # positions, not category strings that parse as numbers
         for i, v in enumerate(vals):
             ax.scatter([i] * len(v), v, color="black", s=10, zorder=3)
+        if reference and key in reference:
+            ax.axhline(reference[key], color="tab:red", linestyle="--", label=f"paper {reference[key]:g}")
+            ax.legend(fontsize=8)
         ax.set_ylabel(label)
         ax.set_xlabel(compare_by)
     fig.tight_layout()

@@ -56,6 +56,7 @@ class SweepCallback(Callback):
     curves:     metrics whose learning curves (against samples) are plotted, key -> label; the first
                 is also summarised (final level, roughness, speed) in the table.
     paper:      the paper's result, lines set beside ours in comparison.md.
+    reference:  the paper's value of final metrics, drawn as a dashed line in comparison.png.
     """
 
     def __init__(
@@ -64,11 +65,13 @@ class SweepCallback(Callback):
         metrics: dict[str, str] | None = None,
         curves: dict[str, str] | None = None,
         paper: list[str] | None = None,
+        reference: dict[str, float] | None = None,
     ) -> None:
         self.compare_by = compare_by
         self.metrics = dict(metrics or DEFAULT_METRICS)
         self.curves = dict(curves or {})
         self.paper = list(paper or [])
+        self.reference = dict(reference or {})
         self.tracker = None
         self.sweep_dir: Path | None = None
         self.server = None
@@ -121,7 +124,7 @@ class SweepCallback(Callback):
             self.tracker.log_dict({"rows": rows}, "comparison.json")
             text = f"# {config.preset}\n\n" + report.final_table(rows, self.compare_by, self.metrics)
             png = self.sweep_dir / "comparison.png"
-            report.plot_final(rows, self.compare_by, self.metrics, png)
+            report.plot_final(rows, self.compare_by, self.metrics, png, self.reference)
             self.tracker.log_artifact(str(png))
             if self.curves:
                 histories = metric_histories(self.tracker.uri, [r["run_id"] for r in rows], list(self.curves))

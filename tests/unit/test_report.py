@@ -1,0 +1,40 @@
+"""The sweep report: tables and curve summaries with known answers."""
+
+from __future__ import annotations
+
+import math
+
+from orchestrator import report
+
+
+def test_curve_summary_of_a_ramp_and_of_a_noisy_curve():
+    # A ramp 0, 1, ..., 9 over steps 0, 100, ..., 900: the last tenth is the last point (9);
+    # half of the rise from 0 to 9 is 4.5, first reached at value 5 (step 500); every change is 1,
+    # over a range of 9: roughness 1/9.
+    ramp = [(100 * i, float(i)) for i in range(10)]
+    s = report.curve_summary(ramp)
+    assert s["final"] == 9.0 and s["samples_to_half"] == 500.0
+    assert math.isclose(s["roughness"], 1 / 9)
+    # The same rise with alternating steps back is rougher and reaches half later.
+    zigzag = [(100 * i, float(i if i % 2 == 0 else i - 2)) for i in range(10)]
+    z = report.curve_summary(zigzag)
+    assert z["roughness"] > s["roughness"]
+    assert math.isnan(report.curve_summary([(0, 1.0)])["final"])  # one point is no curve
+
+
+def test_final_table_groups_seeds_and_orders_points_numerically():
+    rows = [
+        {"w": "10.0", "seed": "0", "m": 1.0, "run_id": "a"},
+        {"w": "10.0", "seed": "1", "m": 3.0, "run_id": "b"},
+        {"w": "2.0", "seed": "0", "m": 5.0, "run_id": "c"},
+    ]
+    table = report.final_table(rows, "w", {"m": "metric"}).splitlines()
+    assert table[2] == "| 2.0 | 1 | 5.000 ± 0.000 |"  # 2 before 10: numeric order
+    assert table[3] == "| 10.0 | 2 | 2.000 ± 1.000 |"  # mean and population std over seeds
+
+
+def test_curve_table_summarises_each_point_over_seeds():
+    histories = {"a": {"r": [(0, 0.0), (10, 2.0)]}, "b": {"r": [(0, 0.0), (10, 4.0)]}}
+    rows = [{"w": "1", "seed": "0", "run_id": "a"}, {"w": "1", "seed": "1", "run_id": "b"}]
+    line = report.curve_table(rows, histories, "w", "r", "return").splitlines()[2]
+    assert line.startswith("| 1 | 3 ± 1 |")  # final 2 and 4
