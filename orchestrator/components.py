@@ -126,6 +126,10 @@ class ReplayActor(ReplayBuffer):
         }
 
     def sample_batches(self, count: int, size: int, length: int) -> list[WindowBatch]:
+        """`count` batches of windows; none from an empty buffer, which is one that Ray has just
+        restarted (the loop reloads it from the last checkpoint when it reports its new life)."""
+        if len(self) == 0:
+            return []
         return [self.sample_windows(size, length) for _ in range(count)]
 
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import logging
 import os
+import time
 import uuid
 from typing import Any
 
@@ -92,8 +93,14 @@ class RayRuntime(Runtime):
     def put(self, obj: Any) -> Any:
         return ray.put(obj)
 
-    def kill(self, handle: Any) -> None:
+    def kill(self, handle: Any, timeout_s: float = 60.0) -> None:
+        """Kill an actor as a crash would, and return once Ray has restarted it (its restart count
+        went up), so that calls made after this one never reach the old life."""
+        before = self.restarts(handle)
         ray.kill(handle, no_restart=False)
+        deadline = time.monotonic() + timeout_s
+        while self.restarts(handle) <= before and time.monotonic() < deadline:
+            time.sleep(0.1)
 
     def restarts(self, handle: Any) -> int:
         """Ray's restart count of an actor; 0 (said once) when the state API is unreachable
