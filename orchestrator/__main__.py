@@ -45,7 +45,13 @@ def main(dcfg: DictConfig) -> float | None:
         # A point of a sweep: a child of the sweep's parent run, in the sweep's store.
         cfg.tracking.uri = cfg.tracking.uri or parent["uri"]
         cfg.tracking.experiment = parent["experiment"]
-    summary = run(cfg, parent_run_id=parent["parent_run_id"] if parent else None)
+    from orchestrator.stages import StageError
+
+    try:
+        summary = run(cfg, parent_run_id=parent["parent_run_id"] if parent else None)
+    except (StageError, ConfigError) as e:
+        print(f"stage error: {e}" if isinstance(e, StageError) else f"config error: {e}", file=sys.stderr)
+        sys.exit(2)
     return summary.get("eval/time_until_fall_mean")
 
 

@@ -99,6 +99,9 @@ class RolloutActor:
     def collect(self, steps: int) -> Trajectory:
         return self.worker.collect(steps)
 
+    def demonstrate(self, clip_ids: np.ndarray, max_steps: np.ndarray) -> list[dict[str, Any]]:
+        return self.worker.demonstrate(clip_ids, max_steps)
+
     def stats(self) -> dict[str, float]:
         return self.worker.stats()
 

@@ -26,6 +26,7 @@ from orchestrator.algos import Method, method_class
 from orchestrator.components import RolloutActor
 from orchestrator.runtime.base import Resources, Runtime
 from orchestrator.schema import Config
+from orchestrator.stages import Upstream
 from orchestrator.tracking.base import Tracker
 from workers.learners.base import Weights
 from workers.sim.character import Character
@@ -42,28 +43,35 @@ class LoopState:
 
 
 class Trainer:
-    def __init__(self, cfg: Config, runtime: Runtime, tracker: Tracker, character: Character):
+    def __init__(
+        self,
+        cfg: Config,
+        runtime: Runtime,
+        tracker: Tracker,
+        character: Character,
+        upstream: dict[str, Upstream] | None = None,
+    ):
         self.cfg = cfg
         self.rt = runtime
         self.tracker = tracker
         self.character = character
         self.state = LoopState()
         self.ckpt_dir = Path(cfg.run_dir) / "checkpoints"
-        self.method: Method = method_class(cfg.algo._target_)(cfg, character)
+        self.method: Method = method_class(cfg.algo._target_)(cfg, character, upstream)
         r = cfg.runtime
+        num_workers = r.rollout_workers if self.method.uses_workers else 0
         worker_res = Resources(cpus=r.worker_cpus, max_restarts=r.max_restarts)
         learner_res = Resources(cpus=r.learner_cpus, gpus=r.learner_gpus, max_restarts=r.max_restarts)
         replay_res = Resources(cpus=0.5, max_restarts=r.max_restarts)
         components = self.method.components()
         res = [replay_res if c.role == "replay" else learner_res for c in components]
-        runtime.reserve(res + [worker_res] * r.rollout_workers)
+        runtime.reserve(res + [worker_res] * num_workers)
         self.handles: dict[str, Any] = {
             c.key: runtime.spawn(c.cls, *c.args, name=c.actor, resources=rc, **c.kwargs)
             for c, rc in zip(components, res, strict=True)
         }
         self.workers = [
-            runtime.spawn(RolloutActor, cfg, i, name=f"rollout-{i}", resources=worker_res)
-            for i in range(r.rollout_workers)
+            runtime.spawn(RolloutActor, cfg, i, name=f"rollout-{i}", resources=worker_res) for i in range(num_workers)
         ]
         self.worker_versions = [-1] * len(self.workers)
         self.weights_version = -1

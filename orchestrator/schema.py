@@ -154,6 +154,41 @@ class ImitationConfig:
                 raise ConfigError(f"algo.imitation.weights.{key} must be non-negative, got {w}")
 
 
+@dataclass
+class DemosConfig:
+    # Expert rollouts per clip of the motion config, from its frame 0 (PhysicsVAE Sec. 5.1.1: 10).
+    rollouts_per_clip: int = 10
+    # Gaussian noise added to the expert's (mean) action, std in radians of PD target (PhysicsVAE: 0.05).
+    noise: float = 0.05
+    # Length of a rollout: a looping clip is tracked this long, a one-shot clip to its last frame; a
+    # rollout also ends where the expert falls.
+    seconds: float = 10.0
+
+    def __post_init__(self) -> None:
+        if self.rollouts_per_clip < 1:
+            raise ConfigError(f"algo.demos.rollouts_per_clip must be at least 1, got {self.rollouts_per_clip}")
+        if self.noise < 0:
+            raise ConfigError(f"algo.demos.noise must be non-negative, got {self.noise}")
+        if self.seconds <= 0:
+            raise ConfigError(f"algo.demos.seconds must be positive, got {self.seconds}")
+
+
+@dataclass
+class OfflineConfig:
+    # Offline training on a demos dataset (the world_model and physicsvae stages): one iteration is one
+    # epoch, a pass over the training transitions. PhysicsVAE: the learning rate decays x0.7 every 50 epochs.
+    lr_decay: float = 0.7
+    decay_every: int = 50
+    # Rollouts of each clip held out of training (the last ones) for the held-out metrics.
+    holdout_rollouts: int = 1
+
+    def __post_init__(self) -> None:
+        if not 0 < self.lr_decay <= 1:
+            raise ConfigError(f"algo.offline.lr_decay must be in (0, 1], got {self.lr_decay}")
+        if self.decay_every < 1 or self.holdout_rollouts < 0:
+            raise ConfigError("algo.offline.decay_every must be at least 1 and holdout_rollouts non-negative")
+
+
 # The sections a method may use, and their schemas. A method names its own in `Method.sections`;
 # a section that a method does not use must stay at its defaults (a value set there is refused, with
 # its key named) and is dropped (None) from the validated config.
@@ -164,6 +199,8 @@ SECTIONS: dict[str, type] = {
     "discriminator": DiscriminatorConfig,
     "amp": AMPConfig,
     "imitation": ImitationConfig,
+    "demos": DemosConfig,
+    "offline": OfflineConfig,
 }
 
 
@@ -179,7 +216,13 @@ class AlgoConfig:
     discriminator: DiscriminatorConfig | None = field(default_factory=DiscriminatorConfig)
     amp: AMPConfig | None = field(default_factory=AMPConfig)
     imitation: ImitationConfig | None = field(default_factory=ImitationConfig)
+    demos: DemosConfig | None = field(default_factory=DemosConfig)
+    offline: OfflineConfig | None = field(default_factory=OfflineConfig)
     loop: LoopConfig = field(default_factory=LoopConfig)
+    # The stages this method needs, role -> spec: "<algo> [key=value ...]" (a stage composed like a
+    # run of its own and reused when an identical one has finished in the store) or "run:<id>"
+    # (orchestrator/stages.py). The method's class says which roles it needs.
+    needs: dict[str, str] = field(default_factory=dict)
 
 
 @dataclass
@@ -267,6 +310,8 @@ class Config:
     progress: bool = True
     # The seeds a sweep preset runs at this scale, as a Hydra sweep ("0,1,2"; scale/ sets it).
     sweep_seeds: str = "0,1,2"
+    # The scale this config was composed at (scale/ sets it); upstream stages are composed at the same.
+    scale_name: str = "laptop"
 
 
 def register() -> None:
@@ -301,7 +346,25 @@ def validate(cfg: DictConfig | dict[str, Any]) -> Config:
     for section in SECTIONS:
         if section not in method.sections:
             setattr(out.algo, section, None)
+    _check_needs(out.algo, method)
     return out
+
+
+def _check_needs(algo: AlgoConfig, method: type) -> None:
+    wanted = tuple(getattr(method, "needs", ()))
+    for role in algo.needs:
+        if role not in wanted:
+            has = ", ".join(wanted) or "none"
+            raise ConfigError(
+                f"algo.needs.{role}: the {algo.name} method does not use a {role} stage (it needs: {has})"
+            )
+    for role in wanted:
+        spec = algo.needs.get(role)
+        if not spec or not str(spec).strip():
+            raise ConfigError(
+                f"algo.needs.{role}: the {algo.name} method needs a {role} stage (a stage such as "
+                f"'tracker', or 'run:<run id>')"
+            )
 
 
 def _section_key(section: str, message: str) -> str:

@@ -57,6 +57,10 @@ class SweepCallback(Callback):
                 is also summarised (final level, roughness, speed) in the table.
     paper:      the paper's result, lines set beside ours in comparison.md.
     reference:  the paper's value of final metrics, drawn as a dashed line in comparison.png.
+    spread:     a figure of one per-rollout quantity's mean and spread per point ({"mean", "std", "label",
+                "title"}; PhysicsVAE's Fig. 9), as spread.png.
+    claims:     the name of a table of the paper's statements beside our numbers
+                (`orchestrator.report_physicsvae.CLAIMS`).
     """
 
     def __init__(
@@ -66,12 +70,17 @@ class SweepCallback(Callback):
         curves: dict[str, str] | None = None,
         paper: list[str] | None = None,
         reference: dict[str, float] | None = None,
+        spread: dict[str, str] | None = None,
+        claims: str | None = None,
     ) -> None:
         self.compare_by = compare_by
         self.metrics = dict(metrics or DEFAULT_METRICS)
         self.curves = dict(curves or {})
         self.paper = list(paper or [])
         self.reference = dict(reference or {})
+        self.spread = dict(spread or {})
+        self.claims = claims
+        self.stages_table = ""
         self.tracker = None
         self.sweep_dir: Path | None = None
         self.server = None
@@ -111,6 +120,54 @@ class SweepCallback(Callback):
         # `uri` is what the jobs log to; `store` is where the runs stay once the sweep is over.
         info = {"parent_run_id": self.tracker.run_id, "uri": uri, "store": store, "experiment": experiment}
         (self.sweep_dir / SWEEP_FILE).write_text(json.dumps(info))
+        self.run_stages(config, uri, experiment)
+
+    def run_stages(self, config: DictConfig, uri: str, experiment: str) -> None:
+        """The points' upstream stages, once, before the points (which then find them finished in the store);
+        the parent run links them (tags `upstream.*`, and stages.md)."""
+        from omegaconf import OmegaConf
+
+        from orchestrator import stages
+        from orchestrator.schema import validate
+
+        plain = OmegaConf.to_container(config, resolve=False)
+        plain.pop("hydra", None)
+        plain["run_dir"] = str(self.sweep_dir)
+        try:
+            cfg = validate(plain)
+            upstream = stages.resolve(cfg, uri, self.sweep_dir, experiment) if cfg.algo.needs else {}
+        except Exception:
+            self.tracker.close("FAILED")
+            self.tracker = None
+            raise
+        if not upstream:
+            return
+        self.tracker.set_tags(stages.lineage_tags(upstream))
+        rows = ["| role | stage | run | stage hash | reused |", "| --- | --- | --- | --- | --- |"]
+        rows += [f"| {r} | {u.name} | {u.run_id} | {u.stage_hash} | {u.reused} |" for r, u in upstream.items()]
+        rows += [f"| {r}.{k} | | {v} | | |" for r, u in upstream.items() for k, v in u.lineage.items()]
+        quality = [
+            f"- {k}: {v:.3g}"
+            for u in upstream.values()
+            for k, v in sorted(u.metrics().items())
+            if k.startswith("expert/") and u.name == "demos"
+        ]
+        if quality:
+            rows += ["", "The expert, on the demos it made (noisy rollouts; `own/` is its own evaluation):", *quality]
+        self.stages_table = "\n".join(rows) + "\n"
+        self.tracker.log_dict(
+            {
+                r: {
+                    "name": u.name,
+                    "run_id": u.run_id,
+                    "stage_hash": u.stage_hash,
+                    "reused": u.reused,
+                    "lineage": u.lineage,
+                }
+                for r, u in upstream.items()
+            },
+            "stages.json",
+        )
 
     def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
         if self.tracker is None:
@@ -119,7 +176,8 @@ class SweepCallback(Callback):
 
         self.tracker.flush()
         children = child_runs(self.tracker.uri, self.tracker.run_id)
-        rows = child_results(children, self.compare_by, list(self.metrics))
+        wanted = list(self.metrics) + [self.spread[k] for k in ("mean", "std") if k in self.spread]
+        rows = child_results(children, self.compare_by, list(dict.fromkeys(wanted)))
         if rows:
             self.tracker.log_dict({"rows": rows}, "comparison.json")
             text = f"# {config.preset}\n\n" + report.final_table(rows, self.compare_by, self.metrics)
@@ -133,6 +191,27 @@ class SweepCallback(Callback):
                 self.tracker.log_artifact(str(curves_png))
                 key, label = next(iter(self.curves.items()))
                 text += "\n" + report.curve_table(rows, histories, self.compare_by, key, label)
+            if self.spread:
+                from orchestrator.report_physicsvae import plot_spread
+
+                spread_png = self.sweep_dir / "spread.png"
+                sp = self.spread
+                plot_spread(
+                    rows,
+                    self.compare_by,
+                    sp["mean"],
+                    sp["std"],
+                    sp.get("label", sp["mean"]),
+                    spread_png,
+                    sp.get("title", ""),
+                )
+                self.tracker.log_artifact(str(spread_png))
+            if self.claims:
+                from orchestrator.report_physicsvae import CLAIMS
+
+                text += "\n## The paper's statements and ours\n\n" + CLAIMS[self.claims](rows, self.compare_by)
+            if self.stages_table:
+                text += "\n## Stages shared by every point\n\n" + self.stages_table
             if self.paper:
                 text += "\n## The paper\n\n" + "\n".join(f"- {line}" for line in self.paper) + "\n"
             table = self.sweep_dir / "comparison.md"

@@ -38,6 +38,7 @@ from workers.rewards import imitation_observation
 from workers.sim.env import BatchedSim
 
 OBSERVATIONS = ("state", "imitation")
+EXPERT_KINDS = ("ppo", "vae")
 
 
 def observation_dim(kind: str, state_dim: int) -> int:
@@ -173,3 +174,54 @@ class GaussianPolicy(Policy):
         """The deterministic PD targets [M, A] (evaluation)."""
         mean = self.module.mean(torch.from_numpy(self.observe(sim, bs))).numpy()
         return mean + self.base_action(sim) if self.residual else mean
+
+
+class ExpertPolicy(Policy):
+    """An expert's deterministic action plus Gaussian noise of std `noise` (PhysicsVAE's demos: ε = 0.05).
+
+    The expert's network comes with its weights: `Weights.state` is {"kind": "ppo" | "vae", "config":
+    its learner config, "module": its state dict} and, for "ppo", "observation" and "residual". A PPO
+    expert acts with its mean (on a residual expert, offset from the reference's next pose); a VAE
+    expert (ControlVAE's posterior) with z = μ_q(s, s̃_{t+1}).
+    """
+
+    def __init__(self, num_bodies: int, action_dim: int, noise: float = 0.05):
+        if noise < 0:
+            raise ValueError(f"noise must be non-negative, got {noise}")
+        self.num_bodies, self.action_dim, self.noise = num_bodies, action_dim, noise
+        self.inner: GaussianPolicy | None = None
+        self.controller: torch.nn.Module | None = None
+
+    def set_weights(self, weights: Weights) -> None:
+        from workers.learners.ppo import build_actor_critic
+        from workers.sim.features import StateLayout
+
+        w = weights.state
+        if w["kind"] == "ppo":
+            obs_dim = observation_dim(w["observation"], StateLayout(self.num_bodies).dim)
+            module = build_actor_critic(obs_dim, self.action_dim, w["config"])
+            module.load_state_dict(w["module"])
+            self.inner, self.controller = GaussianPolicy(module, w["observation"], w["residual"]), None
+        elif w["kind"] == "vae":
+            controller = build_controller(self.num_bodies, self.action_dim, w["config"])
+            controller.load_state_dict(w["module"])
+            self.controller, self.inner = controller.eval().requires_grad_(False), None
+        else:
+            raise ValueError(f"unknown expert kind {w['kind']!r}; expected one of {EXPERT_KINDS}")
+        self.version = int(weights.version)
+
+    @torch.no_grad()
+    def mean_action(self, sim: BatchedSim, bs: np.ndarray) -> np.ndarray:
+        if self.inner is not None:
+            return self.inner.mean_action(sim, bs)
+        if self.controller is None:
+            raise RuntimeError("the expert has no weights yet")
+        s = body_state.features(torch.from_numpy(bs))
+        ref_next = sim.library.features(sim.clip_id, sim.start_frame + sim.steps + 1)
+        posterior, _ = self.controller.encode(s, torch.from_numpy(ref_next.astype(np.float32)))
+        return self.controller.act(s, posterior.mean).numpy()
+
+    def act(self, sim: BatchedSim, bs: np.ndarray) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+        a = torch.from_numpy(np.asarray(self.mean_action(sim, bs), np.float32))
+        a = a + self.noise * torch.randn(a.shape, generator=self.generator)
+        return a.numpy(), {}

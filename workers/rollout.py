@@ -206,6 +206,56 @@ class RolloutWorker:
         self.collect_seconds += time.perf_counter() - t0
         return Trajectory(states, next_states, actions, done, clip_id, frame, self.version, self.worker_id, extras)
 
+    def demonstrate(self, clip_ids: np.ndarray, max_steps: np.ndarray) -> list[dict[str, Any]]:
+        """One episode per entry: clip `clip_ids[i]` tracked from its frame 0 for up to `max_steps[i]` control
+        steps, ending early where the character falls (no reset, no tracking-failure end). Episodes run
+        `num_envs` at a time. Each is {"states" [L+1, B, 13], "actions" [L, A], "clip", "fell",
+        "tracking_error": mean body-position error relative to the root (m)}."""
+        from workers.evaluation import relative_position_error
+
+        sim, m = self.sim, self.num_envs
+        clip_ids, max_steps = np.asarray(clip_ids, int), np.asarray(max_steps, int)
+        out: list[dict[str, Any]] = []
+        for first in range(0, len(clip_ids), m):
+            n = min(m, len(clip_ids) - first)
+            clips = np.resize(clip_ids[first : first + n], m)  # spare environments repeat the jobs
+            limit = np.resize(max_steps[first : first + n], m)
+            ids = np.arange(m)
+            sim.reset(ids, clips, np.zeros(m, int))
+            self.policy.episodes_reset(ids)
+            horizon = int(limit.max())
+            states = np.empty((horizon + 1, m, sim.character.num_bodies, 13), np.float32)
+            actions = np.empty((horizon, m, sim.action_dim), np.float32)
+            length, fell, error = np.zeros(m, int), np.zeros(m, bool), np.zeros(m)
+            bs = body_state.pack(sim.kin_state())
+            states[0] = bs
+            for t in range(horizon):
+                running = ~fell & (t < limit)
+                if not running.any():
+                    break
+                a, _ = self.policy.act(sim, bs)
+                actions[t] = a
+                result = sim.step(a)
+                bs = body_state.pack(result.kin)
+                states[t + 1] = bs
+                err = relative_position_error(result.kin.xpos, sim.reference_state().xpos)
+                length[running] += 1
+                error[running] += err[running]
+                fell |= running & result.fell
+            for e in range(n):
+                L = int(length[e])
+                out.append(
+                    {
+                        "states": states[: L + 1, e].copy(),
+                        "actions": actions[:L, e].copy(),
+                        "clip": int(clips[e]),
+                        "fell": bool(fell[e]),
+                        "tracking_error": float(error[e] / max(L, 1)),
+                    }
+                )
+            self.steps_collected += int(length.sum())
+        return out
+
     def _count_ends(self, result, ids: np.ndarray) -> None:
         self.episodes += len(ids)
         self.episode_steps += int(self.sim.steps[ids].sum())

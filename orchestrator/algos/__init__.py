@@ -28,6 +28,7 @@ from orchestrator.runtime.base import Resources
 if TYPE_CHECKING:
     from orchestrator.loop import Trainer
     from orchestrator.schema import Config
+    from orchestrator.stages import Upstream
     from workers.policies import Policy
     from workers.rollout import Recorder
     from workers.sim.character import Character
@@ -54,10 +55,15 @@ class Method:
 
     # The config sections of `algo` this method uses, besides `loop` (which every method has).
     sections: tuple[str, ...] = ()
+    # The roles of the upstream stages it reads (`algo.needs`, orchestrator/stages.py).
+    needs: tuple[str, ...] = ()
+    # Whether the Trainer starts rollout workers for it (offline methods train on a dataset).
+    uses_workers: bool = True
 
-    def __init__(self, cfg: Config, character: Character):
+    def __init__(self, cfg: Config, character: Character, upstream: dict[str, Upstream] | None = None):
         self.cfg = cfg
         self.character = character
+        self.upstream = dict(upstream or {})
 
     # What runs where -------------------------------------------------------------
     def components(self) -> list[Component]:

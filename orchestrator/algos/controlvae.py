@@ -27,8 +27,8 @@ from workers.policies import VAEPolicy
 class ControlVAE(Method):
     sections = ("world_model", "vae")
 
-    def __init__(self, cfg, character):
-        super().__init__(cfg, character)
+    def __init__(self, cfg, character, upstream=None):
+        super().__init__(cfg, character, upstream)
         self.pending: list[Any] = []
         self.world = None
         # Replay-ratio credit carried between iterations, and update counts (checkpointed).

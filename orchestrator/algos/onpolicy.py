@@ -36,8 +36,8 @@ class OnPolicy(Method):
     observation = "state"
     residual = False  # actions are offsets from the reference's next pose (workers.policies.GaussianPolicy)
 
-    def __init__(self, cfg, character):
-        super().__init__(cfg, character)
+    def __init__(self, cfg, character, upstream=None):
+        super().__init__(cfg, character, upstream)
         self.world = None
         self.pending: list[Any] = []  # the batch being collected, with `algo.loop.overlap`
 

@@ -48,6 +48,7 @@ from typing import Any
 os.environ.setdefault("MLFLOW_DISABLE_TELEMETRY", "true")
 os.environ.setdefault("MLFLOW_HTTP_REQUEST_MAX_RETRIES", "0")
 os.environ.setdefault("MLFLOW_HTTP_REQUEST_TIMEOUT", "3")
+os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")  # a bar per downloaded stage artifact
 
 from mlflow.entities import Metric, Param, RunTag  # noqa: E402 - after the environment defaults
 from mlflow.exceptions import MlflowException  # noqa: E402
@@ -322,7 +323,7 @@ class MlflowTracker(Tracker):
         self._key = f"{PENDING}{uuid.uuid4().hex}"
         if parent_run_id is not None:
             tags["mlflow.parentRunId"] = parent_run_id
-        artifacts = (self.run_dir / "mlartifacts").as_uri() if uri is None else None
+        artifacts = (self.run_dir / "mlartifacts").as_uri() if uri is None else store_artifacts(uri)
         create = {"experiment": experiment, "artifact_location": artifacts, "run_name": run_name, "tags": tags}
         self._sender.submit({"op": "create", "run": self._key, "start_time": _now_ms(), **create})
 
@@ -437,6 +438,14 @@ class MlflowTracker(Tracker):
         """`owned`: a file the tracker wrote itself, deleted once uploaded."""
         record = {"op": "artifact", "run": self._key, "path": str(path), "artifact_path": artifact_path}
         self._sender.submit({**record, "owned": owned})
+
+
+def store_artifacts(uri: str) -> str | None:
+    """Where a new experiment in a SQLite store keeps its artifacts: beside the database file (MLflow's own
+    default, ./mlruns under the working directory, would scatter them); None (the server decides) otherwise."""
+    if not uri.startswith("sqlite:///"):
+        return None
+    return (Path(uri.removeprefix("sqlite:///")).parent / "mlartifacts").resolve().as_uri()
 
 
 def embedded_uri(run_dir: str | Path) -> str:

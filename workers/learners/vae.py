@@ -83,6 +83,11 @@ class VAEConfig:
             raise ValueError(f"vae.objective: unknown objective {self.objective!r}; expected one of {OBJECTIVES}")
         if self.prior not in PRIOR_TYPES:
             raise ValueError(f"vae.prior: unknown prior type {self.prior!r}; expected one of {PRIOR_TYPES}")
+        if self.objective == "physicsvae" and self.prior != "standard_normal":
+            raise ValueError(
+                f"vae.prior: the physicsvae objective has its KL to N(0, I) (PhysicsVAE Eq. 1), so the prior "
+                f"must be standard_normal, got {self.prior!r}"
+            )
         for key in ("alpha", "lambda_regu", "w_a1", "w_a2", "action_noise"):
             if getattr(self, key) < 0:
                 raise ValueError(f"vae.{key} must be non-negative, got {getattr(self, key)}")

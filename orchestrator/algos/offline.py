@@ -1,0 +1,117 @@
+"""PhysicsVAE (Won et al. 2022) in two offline stages on the expert's demos.
+
+`algo=world_model`: the simulation layer, the world model trained on the demos'
+(state, action) windows, then frozen (PhysicsVAE trains it first, 300 epochs).
+`algo=physicsvae`: the conditional VAE on the demos' transitions by Eq. 1, behaviour
+cloning + α·simulation consistency through the frozen layer + β·KL to N(0, I)
+(600 epochs). Both need the `demos` stage; PhysicsVAE also the `world_model` stage, so
+that every point of an α sweep shares one expert, one dataset and one layer.
+
+One iteration is one epoch (`components_offline`). Both report the expert's quality
+from the demos' manifest (`expert/...`) in their run. Evaluation: the layer's held-out
+prediction error; the VAE's held-out errors and time-until-fall by PhysicsVAE's protocol
+(z ~ N(0, I) every control step, `eval.fall_rollouts` rollouts from one fixed start,
+capped at `eval.fall_max_seconds`), with the tracking error of the posterior.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict
+from typing import Any
+
+from orchestrator.algos import Component, Method
+from orchestrator.algos.demos import load_demos
+from orchestrator.components import load_world
+from orchestrator.components_offline import OfflineWorldModelActor, PhysicsVAEActor
+from orchestrator.evaluate import evaluate_controller
+from orchestrator.stages import StageError
+
+
+class Offline(Method):
+    """What both offline stages share: the demos, an epoch per iteration, held-out metrics."""
+
+    uses_workers = False
+    learner_key = ""
+
+    def __init__(self, cfg, character, upstream=None):
+        super().__init__(cfg, character, upstream)
+        self.demos, self.manifest = (None, {}) if "demos" not in self.upstream else load_demos(self.upstream["demos"])
+
+    def demos_arrays(self) -> dict[str, Any]:
+        if self.demos is None:
+            raise StageError(f"the {self.cfg.algo.name} stage has no demos (algo.needs.demos)")
+        return asdict(self.demos)
+
+    def start(self, t) -> None:
+        if t.state.iteration == 0:
+            t.tracker.log_metrics(self.expert_metrics(), step=0)
+
+    def expert_metrics(self) -> dict[str, float]:
+        """The expert's quality, as recorded in the demos' manifest: it bounds what is learnt from them."""
+        out = {f"expert/{k}": float(v) for k, v in self.manifest.get("expert", {}).items()}
+        out.update({f"demos/{k}": float(v) for k, v in self.manifest.get("counts", {}).items()})
+        return out
+
+    def step(self, t) -> tuple[int, dict[str, float]]:
+        rt, key = t.rt, self.learner_key
+        m = rt.get(rt.call(t.handles[key], "train_epoch"))
+        t.check_alive(key, m.pop("incarnation"))
+        return int(m["updates"] * self.batch_size()), {f"{key}/{k}": float(v) for k, v in m.items()}
+
+    def batch_size(self) -> int:
+        raise NotImplementedError
+
+    def heldout(self, t) -> dict[str, float]:
+        m = t.rt.get(t.rt.call(t.handles[self.learner_key], "validate"))
+        return {f"eval/{k}": float(v) for k, v in m.items()}
+
+    def progress(self, metrics: dict[str, float]) -> dict[str, str]:
+        return {"loss": f"{metrics.get(f'{self.learner_key}/loss', float('nan')):.3g}"}
+
+
+class OfflineWorldModel(Offline):
+    sections = ("world_model", "offline")
+    needs = ("demos",)
+    learner_key = "world_model"
+
+    def components(self) -> list[Component]:
+        b, a = self.character.num_bodies, self.character.num_actions
+        args = (self.cfg, self.demos_arrays(), b, a)
+        return [Component("world_model", OfflineWorldModelActor, args, actor="learner-world_model")]
+
+    def batch_size(self) -> int:
+        return self.cfg.algo.world_model.batch_size
+
+    def evaluate(self, t, final: bool) -> dict[str, float]:
+        return self.heldout(t)
+
+
+class PhysicsVAE(Offline):
+    sections = ("world_model", "vae", "offline")
+    needs = ("demos", "world_model")
+    learner_key = "vae"
+
+    def __init__(self, cfg, character, upstream=None):
+        super().__init__(cfg, character, upstream)
+        self.world = None
+
+    def components(self) -> list[Component]:
+        b, a = self.character.num_bodies, self.character.num_actions
+        up = self.upstream["world_model"]
+        state = up.checkpoint()
+        if "world_model" not in state:
+            raise StageError(f"{up.describe()}: its checkpoint has no world_model state")
+        layer = state["world_model"]["learner"]["module"]
+        args = (self.cfg, self.demos_arrays(), b, a, layer)
+        return [Component("vae", PhysicsVAEActor, args, actor="learner-vae")]
+
+    def batch_size(self) -> int:
+        return self.cfg.algo.vae.batch_size
+
+    def evaluate(self, t, final: bool) -> dict[str, float]:
+        if self.world is None:
+            self.world = load_world(self.cfg)
+        weights = t.rt.get(t.rt.call(t.handles["vae"], "get_weights"))
+        metrics = self.heldout(t)
+        metrics.update(evaluate_controller(self.cfg, *self.world, weights, t.tracker, t.state.iteration, final))
+        return metrics

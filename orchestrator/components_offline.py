@@ -1,0 +1,161 @@
+"""Learner actors that train on a fixed dataset of expert demonstrations (PhysicsVAE's two stages).
+
+Each is built with the demos' arrays (on Ray they travel once, through the object store),
+splits the episodes into training and held-out rollouts (`algo.offline.holdout_rollouts`),
+and trains one epoch per `train_epoch` call: as many updates as it takes for the batches to
+cover the training transitions once, at the epoch's learning rate (×`lr_decay` every
+`decay_every` epochs, PhysicsVAE's schedule). `validate` measures the held-out rollouts.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+import torch
+
+from orchestrator.components import LearnerActor, seed_of
+from orchestrator.schema import Config
+from workers.demos import DemoSet
+from workers.learners.vae import VAEBatch, VAELearner
+from workers.learners.world_model import WorldModelBatch, WorldModelLearner
+from workers.models import body_state
+from workers.models.world_model import WorldModel
+
+
+def world_model_of(cfg: Config, num_bodies: int, action_dim: int) -> WorldModel:
+    wm = cfg.algo.world_model
+    return WorldModel(num_bodies, action_dim, wm.hidden, wm.activation, 1.0 / cfg.character.control_hz, wm.integrator)
+
+
+class OfflineActor(LearnerActor):
+    window: int  # transitions per sampled window
+
+    def __init__(self, cfg: Config, demos: dict[str, np.ndarray], key: int):
+        super().__init__()
+        torch.set_num_threads(cfg.runtime.torch_threads)
+        torch.manual_seed(seed_of(cfg, key))
+        self.cfg = cfg
+        self.demos = DemoSet(**demos)
+        holdout = cfg.algo.offline.holdout_rollouts
+        self.train_starts = self.demos.window_starts(self.window, self.demos.episodes_of(False, holdout))
+        self.heldout_starts = self.demos.window_starts(self.window, self.demos.episodes_of(True, holdout))
+        if len(self.train_starts) == 0:
+            raise ValueError(f"the demos hold no training window of {self.window} transitions")
+        self.rng = np.random.default_rng(seed_of(cfg, key + 1))
+        self.epoch = 0
+
+    @property
+    def batch_size(self) -> int:
+        raise NotImplementedError
+
+    def batch(self, starts: np.ndarray) -> Any:
+        raise NotImplementedError
+
+    def train_epoch(self) -> dict[str, Any]:
+        off = self.cfg.algo.offline
+        lr = self.base_lr * off.lr_decay ** (self.epoch // off.decay_every)
+        for group in self.learner.optimizer.param_groups:
+            group["lr"] = lr
+        updates = max(1, math.ceil(len(self.train_starts) * self.window / (self.batch_size * self.window)))
+        metrics = []
+        for _ in range(updates):
+            starts = self.rng.choice(self.train_starts, size=self.batch_size)
+            metrics.append(self.learner.update(self.batch(starts)))
+        self.epoch += 1
+        out = self.report(metrics)
+        out["epoch"] = float(self.epoch)
+        return out
+
+    def heldout(self, limit: int = 4096) -> np.ndarray:
+        starts = self.heldout_starts if len(self.heldout_starts) else self.train_starts
+        if len(starts) > limit:
+            starts = np.random.default_rng(0).choice(starts, size=limit, replace=False)
+        return np.sort(starts)
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"learner": self.learner.state_dict(), "epoch": self.epoch, "rng": self.rng.bit_generator.state}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.learner.load_state_dict(state["learner"])
+        self.epoch = int(state["epoch"])
+        self.rng.bit_generator.state = state["rng"]
+
+
+class OfflineWorldModelActor(OfflineActor):
+    """PhysicsVAE's simulation layer: the world model on T_w-step windows of the expert's (state, action)."""
+
+    def __init__(self, cfg: Config, demos: dict[str, np.ndarray], num_bodies: int, action_dim: int):
+        self.window = cfg.algo.world_model.rollout_steps
+        super().__init__(cfg, demos, 2)
+        wm = cfg.algo.world_model
+        self.learner = WorldModelLearner(num_bodies, action_dim, 1.0 / cfg.character.control_hz, wm)
+        self.base_lr = wm.lr
+
+    @property
+    def batch_size(self) -> int:
+        return self.cfg.algo.world_model.batch_size
+
+    def batch(self, starts: np.ndarray) -> WorldModelBatch:
+        states, actions = self.demos.windows(starts, self.window)
+        return WorldModelBatch(torch.from_numpy(states), torch.from_numpy(actions))
+
+    @torch.no_grad()
+    def validate(self) -> dict[str, float]:
+        """Open-loop error on held-out windows: body positions (m, relative to nothing: world frame) and
+        the loss terms, after one step and after T_w steps."""
+        states, actions = self.demos.windows(self.heldout(), self.window)
+        predicted = self.learner.predict(torch.from_numpy(states[:, 0]), torch.from_numpy(actions))
+        err = (predicted[..., :3] - torch.from_numpy(states[:, 1:, :, :3])).norm(dim=-1).mean(-1)  # [N, T]
+        return {"heldout_pos_error_1": float(err[:, 0].mean()), "heldout_pos_error_T": float(err[:, -1].mean())}
+
+
+class PhysicsVAEActor(OfflineActor):
+    """PhysicsVAE's VAE (Eq. 1) on the expert's transitions, through the frozen simulation layer."""
+
+    def __init__(
+        self,
+        cfg: Config,
+        demos: dict[str, np.ndarray],
+        num_bodies: int,
+        action_dim: int,
+        world_model_state: dict[str, Any],
+    ):
+        self.window = cfg.algo.vae.rollout_steps
+        super().__init__(cfg, demos, 3)
+        self.world_model = world_model_of(cfg, num_bodies, action_dim)
+        self.world_model.load_state_dict(world_model_state)
+        self.learner = VAELearner(
+            num_bodies, action_dim, cfg.algo.vae, world_model=self.world_model, seed=seed_of(cfg, 4)
+        )
+        self.base_lr = cfg.algo.vae.lr
+
+    @property
+    def batch_size(self) -> int:
+        return self.cfg.algo.vae.batch_size
+
+    def batch(self, starts: np.ndarray) -> VAEBatch:
+        states, actions = self.demos.windows(starts, self.window)
+        return VAEBatch(torch.from_numpy(states), actions=torch.from_numpy(actions))
+
+    @torch.no_grad()
+    def validate(self) -> dict[str, float]:
+        """On held-out expert transitions, with z = μ_q(s_t, s_{t+1}): the action error ‖a − a'‖², and the
+        simulation layer's next state from the decoder's action against the expert's, ‖s_{t+1} − W(s_t, a')‖²
+        in features (what Eq. 1's α term weighs) and in body positions (m). Measured for every α, 0 included."""
+        vae = self.learner.vae.eval()
+        states, actions = self.demos.windows(self.heldout(), 1)
+        s = body_state.features(torch.from_numpy(states))
+        q, _ = vae.encode(s[:, 0], s[:, 1])
+        a = vae.act(s[:, 0], q.mean)
+        nxt = self.world_model(torch.from_numpy(states[:, 0]), a)
+        pos = (nxt[..., :3] - torch.from_numpy(states[:, 1, :, :3])).norm(dim=-1).mean(-1)
+        return {
+            "heldout_action_error": float(((a - torch.from_numpy(actions[:, 0])) ** 2).sum(-1).mean()),
+            "heldout_sim_error": float(((body_state.features(nxt) - s[:, 1]) ** 2).sum(-1).mean()),
+            "heldout_next_pos_error": float(pos.mean()),
+        }
+
+    def get_weights(self):
+        return self.learner.get_weights()
