@@ -69,6 +69,9 @@ def compose(overrides: list[str]) -> Any:
     from hydra import initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
 
+    from orchestrator.schema import register
+
+    register()  # the schema the defaults list starts from
     if GlobalHydra.instance().is_initialized():
         return hydra_compose("config", overrides=overrides)
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):

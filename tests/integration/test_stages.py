@@ -1,0 +1,228 @@
+"""Stages with reuse, on the PhysicsVAE pipeline at smoke size: tracker -> demos -> world_model -> physicsvae.
+
+One pipeline is trained once for the module into its own MLflow store; the tests then ask it for stages
+again (reused, or not), break its artifacts, and train PhysicsVAE on its data.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+from mlflow.tracking import MlflowClient
+
+from orchestrator import stages
+from orchestrator.algos.demos import load_demos
+from orchestrator.build import run
+from orchestrator.components_offline import OfflineWorldModelActor, PhysicsVAEActor
+from orchestrator.schema import Config, validate
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def smoke_config(run_dir: Path, *overrides: str) -> Config:
+    """As the `smoke` fixture composes (tests/integration/conftest.py), for a module-scoped fixture."""
+    base = ["scale=smoke", "motion=walk", f"run_dir={run_dir}", "progress=false"]
+    return validate(stages.compose([*base, *overrides]))
+
+
+def runs_of(uri: str, algo: str) -> list:
+    client = MlflowClient(uri)
+    ids = [e.experiment_id for e in client.search_experiments()]
+    return client.search_runs(ids, filter_string=f"tags.algo = '{algo}'")
+
+
+@pytest.fixture(scope="module")
+def pipeline(tmp_path_factory):
+    """A finished physicsvae run and its three upstream stages, in one store."""
+    root = tmp_path_factory.mktemp("pipeline")
+    uri = f"sqlite:///{root / 'store.db'}"
+    cfg = smoke_config(root / "physicsvae", "algo=physicsvae", f"tracking.uri={uri}")
+    run(cfg)
+    return {"root": root, "uri": uri, "cfg": cfg}
+
+
+def test_the_pipeline_ran_each_stage_once_and_linked_them(pipeline):
+    uri = pipeline["uri"]
+    counts = {a: len(runs_of(uri, a)) for a in ("tracker", "demos", "world_model", "physicsvae")}
+    assert counts == {"tracker": 1, "demos": 1, "world_model": 1, "physicsvae": 1}
+    pv = runs_of(uri, "physicsvae")[0]
+    tags = pv.data.tags
+    assert tags["upstream.demos"] == runs_of(uri, "demos")[0].info.run_id
+    assert tags["upstream.world_model"] == runs_of(uri, "world_model")[0].info.run_id
+    assert tags["expert_run_id"] == runs_of(uri, "tracker")[0].info.run_id  # which expert it came from
+    assert "expert/tracking_error_mean" in pv.data.metrics  # the expert's quality, reported downstream
+    assert all(r.info.status == "FINISHED" for a in counts for r in runs_of(uri, a))
+
+
+def test_an_identical_stage_is_reused_and_a_changed_alpha_is_not(pipeline):
+    cfg, uri, root = pipeline["cfg"], pipeline["uri"], pipeline["root"]
+    messages: list[str] = []
+    same = stages.ensure("pv", "physicsvae", cfg, uri, root / "again", "default", messages.append)
+    assert same.reused and same.run_id == runs_of(uri, "physicsvae")[0].info.run_id
+    assert "vae" in same.checkpoint()  # its artifacts are found and load
+    assert len(runs_of(uri, "physicsvae")) == 1
+    changed = stages.ensure("pv", "physicsvae algo.vae.alpha=0.003", cfg, uri, root / "alpha", "default", print)
+    assert not changed.reused and changed.stage_hash != same.stage_hash
+    assert len(runs_of(uri, "physicsvae")) == 2
+    assert len(runs_of(uri, "tracker")) == 1 and len(runs_of(uri, "world_model")) == 1  # upstream reused
+
+
+def test_a_changed_upstream_stage_invalidates_the_ones_below(pipeline):
+    cfg, uri = pipeline["cfg"], pipeline["uri"]
+    before = runs_of(uri, "physicsvae")[0].data.tags["stage_hash"]
+    algo = dataclasses.replace(
+        cfg.algo, needs={**cfg.algo.needs, "world_model": "world_model algo.world_model.lr=0.002"}
+    )
+    changed = dataclasses.replace(cfg, algo=algo, run_dir=str(pipeline["root"] / "new-layer"))
+    run(changed)
+    new = [r for r in runs_of(uri, "physicsvae") if r.data.tags["stage_hash"] != before]
+    layer_runs = runs_of(uri, "world_model")
+    assert len(layer_runs) == 2  # the layer was retrained with its new setting ...
+    assert any(r.data.tags["upstream.world_model"] not in {w.info.run_id for w in layer_runs[1:]} for r in new)
+    tags = [r for r in new if r.data.tags["upstream.world_model.reused"] == "false"][0].data.tags
+    assert tags["upstream.demos.reused"] == "true"  # ... the stages above it were not
+    assert len(runs_of(uri, "tracker")) == 1 and len(runs_of(uri, "demos")) == 1
+
+
+def cli(*overrides: str, timeout: int = 600) -> subprocess.CompletedProcess:
+    command = [sys.executable, "-m", "orchestrator", "scale=smoke", "motion=walk", "progress=false", *overrides]
+    return subprocess.run(command, cwd=ROOT, capture_output=True, text=True, timeout=timeout)
+
+
+def artifact_dir(uri: str, run_id: str) -> Path:
+    return Path(MlflowClient(uri).get_run(run_id).info.artifact_uri.removeprefix("file://"))
+
+
+def test_a_missing_or_corrupted_upstream_artifact_stops_with_one_line(pipeline, tmp_path):
+    uri = pipeline["uri"]
+    demos_run = runs_of(uri, "demos")[0].info.run_id
+    demos_file = artifact_dir(uri, demos_run) / "demos" / "demos.npz"
+    saved = tmp_path / "demos.npz"
+    shutil.copy(demos_file, saved)
+    try:
+        demos_file.write_bytes(b"not a zip file")
+        proc = cli("algo=physicsvae", "algo.vae.alpha=0.0002", f"tracking.uri={uri}", f"run_dir={tmp_path / 'a'}")
+        assert proc.returncode == 2, proc.stderr[-2000:]
+        last = proc.stderr.strip().splitlines()[-1]
+        assert last.startswith("stage error: stage demos (demos, run ") and "demos/demos.npz" in last, last
+        assert "unreadable" in last
+        demos_file.unlink()
+        proc = cli("algo=physicsvae", "algo.vae.alpha=0.0002", f"tracking.uri={uri}", f"run_dir={tmp_path / 'b'}")
+        assert proc.returncode == 2
+        last = proc.stderr.strip().splitlines()[-1]
+        assert "stage demos" in last and "artifact demos/demos.npz is missing" in last, last
+    finally:
+        shutil.copy(saved, demos_file)
+
+
+def test_physicsvae_alpha_pulls_the_simulated_next_states_toward_the_demos(pipeline):
+    """Known direction on real expert data: with α > 0 the decoder's actions, through the frozen layer, land
+    nearer the demos' next states on held-out rollouts than with α = 0 (plain behaviour cloning).
+
+    It needs data: with the smoke expert's six rollouts (158 training transitions) α lowered the training
+    windows' error and raised the held-out one (overfitting); with forty (about 1,000) it lowers both."""
+    cfg, uri, root = pipeline["cfg"], pipeline["uri"], pipeline["root"]
+    spec = "demos algo.demos.rollouts_per_clip=40 algo.demos.seconds=4"
+    demos, _ = load_demos(stages.ensure("demos", spec, cfg, uri, root / "d40", "default", print))
+    offline = dataclasses.replace(cfg.algo.offline, holdout_rollouts=8)
+    data = dataclasses.asdict(demos)
+    wm_cfg = smoke_config(root / "unused", "algo=world_model")
+    wm_cfg = dataclasses.replace(wm_cfg, algo=dataclasses.replace(wm_cfg.algo, offline=offline))
+    torch.manual_seed(0)
+    layer = OfflineWorldModelActor(wm_cfg, data, 15, 28)
+    for _ in range(20):
+        layer.train_epoch()
+    results = {}
+    for alpha in (0.0, 1.0):
+        vae = dataclasses.replace(cfg.algo.vae, alpha=alpha, lr=1e-3)
+        c = dataclasses.replace(cfg, algo=dataclasses.replace(cfg.algo, vae=vae, offline=offline))
+        torch.manual_seed(0)
+        actor = PhysicsVAEActor(c, data, 15, 28, layer.learner.model.state_dict())
+        for _ in range(10):
+            actor.train_epoch()
+        results[alpha] = actor.validate()
+        actor.heldout_starts = actor.train_starts
+        results[alpha, "train"] = actor.validate()
+    assert results[1.0]["heldout_sim_error"] < 0.95 * results[0.0]["heldout_sim_error"], results
+    assert results[1.0, "train"]["heldout_sim_error"] < results[0.0, "train"]["heldout_sim_error"], results
+    # ... at the cost of cloning the expert's (noisy) actions less closely
+    assert results[1.0]["heldout_action_error"] > results[0.0]["heldout_action_error"], results
+
+
+def test_ablation_alpha_smoke_gives_a_parent_with_a_child_per_point_the_stages_and_the_figure(tmp_path):
+    sweep_dir = tmp_path / "sweep"
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "orchestrator",
+            "+experiment=ablation_alpha",
+            "scale=smoke",
+            "motion=walk",
+            "progress=false",
+            f"hydra.sweep.dir={sweep_dir}",
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    import json
+
+    info = json.loads((sweep_dir / "sweep.json").read_text())
+    client = MlflowClient(info["store"])
+    parent = client.get_run(info["parent_run_id"])
+    children = client.search_runs(
+        [parent.info.experiment_id], filter_string=f"tags.mlflow.parentRunId = '{parent.info.run_id}'"
+    )
+    alphas = sorted(float(c.data.params["algo.vae.alpha"]) for c in children)
+    assert alphas == [0.0, 1e-4, 3e-4, 1e-3, 3e-3, 1e-2]
+    store = info["store"]
+    assert len(runs_of(store, "tracker")) == 1 and len(runs_of(store, "world_model")) == 1
+    expert = runs_of(store, "tracker")[0].info.run_id
+    assert {c.data.tags["expert_run_id"] for c in children} == {expert}
+    assert parent.data.tags["upstream.demos.expert"] == expert  # the parent links every stage it used
+    assert parent.data.tags["upstream.world_model"] == runs_of(store, "world_model")[0].info.run_id
+    assert all(c.data.tags["upstream.world_model.reused"] == "true" for c in children)
+    artifacts = {a.path for a in client.list_artifacts(parent.info.run_id)}
+    assert {"spread.png", "comparison.png", "comparison.md", "stages.json"} <= artifacts
+    table = (sweep_dir / "comparison.md").read_text()
+    assert "the best α lies in 3e-4 … 3e-3" in table and "Stages shared by every point" in table
+
+
+@pytest.mark.slow
+def test_a_parallel_sweep_trains_the_expert_once(tmp_path):
+    sweep_dir = tmp_path / "sweep"
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "orchestrator",
+            "+experiment=ablation_alpha",
+            "scale=smoke",
+            "motion=walk",
+            "progress=false",
+            f"hydra.sweep.dir={sweep_dir}",
+            "algo.vae.alpha=0,0.001",
+            "hydra/launcher=joblib",
+            "hydra.launcher.n_jobs=2",
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    import json
+
+    store = json.loads((sweep_dir / "sweep.json").read_text())["store"]
+    assert len(runs_of(store, "tracker")) == 1 and len(runs_of(store, "demos")) == 1
+    points = runs_of(store, "physicsvae")
+    assert len(points) == 2 and len({p.data.tags["expert_run_id"] for p in points}) == 1

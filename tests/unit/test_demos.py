@@ -1,0 +1,96 @@
+"""Expert demonstrations: ten noisy rollouts per clip from the rollout worker, stored and split as a DemoSet."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+
+from workers.demos import DemoError, DemoSet
+from workers.learners.base import Weights
+from workers.learners.ppo import PPOConfig, build_actor_critic
+from workers.policies import ExpertPolicy
+from workers.rollout import RolloutWorker
+from workers.sim.env import SimConfig
+from workers.sim.features import StateLayout
+
+PPO = PPOConfig(policy_hidden=(32,), value_hidden=(32,))
+
+
+@pytest.fixture(scope="module")
+def expert(character) -> Weights:
+    """A residual tracking expert with zero offsets: PD tracking of the reference, which can be checked by hand."""
+    torch.manual_seed(0)
+    obs_dim = 2 * StateLayout(character.num_bodies).dim
+    module = build_actor_critic(obs_dim, character.num_actions, PPO)
+    state = {k: torch.zeros_like(v) if k.startswith("policy.") else v for k, v in module.state_dict().items()}
+    module.load_state_dict(state)
+    payload = {
+        "kind": "ppo",
+        "config": PPO,
+        "observation": "imitation",
+        "residual": True,
+        "module": module.state_dict(),
+    }
+    return Weights(3, payload)
+
+
+def demonstrate(character, library, expert, noise, per_clip=10, steps=12):
+    policy = ExpertPolicy(character.num_bodies, character.num_actions, noise)
+    worker = RolloutWorker(character, library, 8, policy, SimConfig(), seed=1)
+    worker.set_weights(expert)
+    clips = np.repeat(np.arange(library.num_clips), per_clip)
+    episodes = worker.demonstrate(clips, np.full(len(clips), steps))
+    for i, ep in enumerate(episodes):
+        ep["rollout"] = i % per_clip
+    return episodes, policy
+
+
+def test_ten_noisy_rollouts_per_clip_with_the_stated_noise(character, walk_run, expert):
+    episodes, _ = demonstrate(character, walk_run, expert, noise=0.05)
+    clean, policy = demonstrate(character, walk_run, expert, noise=0.0)
+    demos = DemoSet.from_episodes(episodes)
+    assert np.bincount(demos.episode_clip).tolist() == [10] * walk_run.num_clips
+    assert sorted(set(demos.episode_rollout.tolist())) == list(range(10))
+    # Every rollout starts on its clip's frame 0; the first action is the expert's (here: the PD targets of the
+    # reference's next frame) plus N(0, 0.05²) noise.
+    first = np.stack([ep["actions"][0] for ep in episodes])
+    target = np.stack([ep["actions"][0] for ep in clean])
+    for c in range(walk_run.num_clips):
+        ref = walk_run.state(np.array([c]), np.array([1]))
+        assert np.allclose(target[[e["clip"] == c for e in clean]], character.qpos_to_action(ref.qpos), atol=1e-5)
+    noise = first - target
+    assert abs(noise.mean()) < 0.01
+    assert noise.std() == pytest.approx(0.05, rel=0.1)
+    # Episode ends: the last state of each episode, with no action after it; states chain within an episode.
+    assert demos.done.sum() == demos.num_episodes and (demos.actions[demos.done] == 0).all()
+    assert demos.num_transitions == sum(len(ep["actions"]) for ep in episodes)
+
+
+def test_windows_never_cross_an_episode_end_and_the_split_holds_out_the_last_rollouts(character, walk_run, expert):
+    episodes, _ = demonstrate(character, walk_run, expert, noise=0.05, per_clip=4, steps=6)
+    demos = DemoSet.from_episodes(episodes)
+    held = demos.episodes_of(True, holdout=1)
+    assert set(demos.episode_rollout[held].tolist()) == {3}
+    assert len(demos.episodes_of(False, holdout=1)) == 3 * walk_run.num_clips
+    starts = demos.window_starts(3)
+    for s in starts:
+        assert len(set(demos.episode[s : s + 4].tolist())) == 1
+    states, actions = demos.windows(starts[:5], 3)
+    assert states.shape == (5, 4, character.num_bodies, 13) and actions.shape == (5, 3, character.num_actions)
+
+
+def test_a_broken_demos_file_is_refused_with_its_name(tmp_path, character, walk_run, expert):
+    episodes, _ = demonstrate(character, walk_run, expert, noise=0.05, per_clip=2, steps=4)
+    path = DemoSet.from_episodes(episodes).save(tmp_path / "demos.npz")
+    assert DemoSet.load(path).num_episodes == 2 * walk_run.num_clips
+    (tmp_path / "junk.npz").write_bytes(b"junk")
+    with pytest.raises(DemoError, match="junk.npz: unreadable demos file"):
+        DemoSet.load(tmp_path / "junk.npz")
+    arrays = dataclasses.asdict(DemoSet.load(path))
+    del arrays["done"]
+    np.savez(tmp_path / "partial.npz", **arrays)
+    with pytest.raises(DemoError, match="partial.npz: no array 'done'"):
+        DemoSet.load(tmp_path / "partial.npz")
