@@ -189,6 +189,14 @@ class OfflineConfig:
             raise ConfigError("algo.offline.decay_every must be at least 1 and holdout_rollouts non-negative")
 
 
+@dataclass
+class PulseConfig:
+    # PULSE's "prior-action" switch (Table 3): a downstream task policy acts as a residual on the learned
+    # prior's mean, a = D(s, μ_task + μ_p) (Eq. 4). It changes nothing in the distillation itself; it is
+    # part of the stage's config so that a task stage on this decoder reads it. Needs the learned prior.
+    prior_action: bool = True
+
+
 # The sections a method may use, and their schemas. A method names its own in `Method.sections`;
 # a section that a method does not use must stay at its defaults (a value set there is refused, with
 # its key named) and is dropped (None) from the validated config.
@@ -201,6 +209,7 @@ SECTIONS: dict[str, type] = {
     "imitation": ImitationConfig,
     "demos": DemosConfig,
     "offline": OfflineConfig,
+    "pulse": PulseConfig,
 }
 
 
@@ -218,6 +227,7 @@ class AlgoConfig:
     imitation: ImitationConfig | None = field(default_factory=ImitationConfig)
     demos: DemosConfig | None = field(default_factory=DemosConfig)
     offline: OfflineConfig | None = field(default_factory=OfflineConfig)
+    pulse: PulseConfig | None = field(default_factory=PulseConfig)
     loop: LoopConfig = field(default_factory=LoopConfig)
     # The stages this method needs, role -> spec: "<algo> [key=value ...]" (a stage composed like a
     # run of its own and reused when an identical one has finished in the store) or "run:<id>"
@@ -347,6 +357,11 @@ def validate(cfg: DictConfig | dict[str, Any]) -> Config:
         if section not in method.sections:
             setattr(out.algo, section, None)
     _check_needs(out.algo, method)
+    if out.algo.pulse is not None and out.algo.pulse.prior_action and out.algo.vae.prior != "learned":
+        raise ConfigError(
+            f"algo.pulse.prior_action: a residual on the prior's mean (PULSE Eq. 4) needs algo.vae.prior=learned, "
+            f"got {out.algo.vae.prior!r} (set algo.pulse.prior_action=false)"
+        )
     return out
 
 

@@ -12,6 +12,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 from mlflow.tracking import MlflowClient
@@ -226,3 +227,20 @@ def test_a_parallel_sweep_trains_the_expert_once(tmp_path):
     assert len(runs_of(store, "tracker")) == 1 and len(runs_of(store, "demos")) == 1
     points = runs_of(store, "physicsvae")
     assert len(points) == 2 and len({p.data.tags["expert_run_id"] for p in points}) == 1
+
+
+def test_pulse_distillation_lowers_the_action_error_on_the_students_own_states(pipeline):
+    """The student acts, the expert labels its states (DAgger): the distillation error on those states falls,
+    the run reuses the pipeline's expert, and evaluation reports PULSE's success rate and MPJPE."""
+    uri, root = pipeline["uri"], pipeline["root"]
+    cfg = smoke_config(root / "pulse", "algo=pulse", f"tracking.uri={uri}", "algo.loop.iterations=16")
+    run(cfg)
+    assert len(runs_of(uri, "tracker")) == 1  # the expert stage was reused
+    (pulse,) = runs_of(uri, "pulse")
+    assert pulse.data.tags["expert_run_id"] == runs_of(uri, "tracker")[0].info.run_id
+    history = sorted(MlflowClient(uri).get_metric_history(pulse.info.run_id, "vae/distill"), key=lambda m: m.step)
+    first, last = history[0].value, np.mean([m.value for m in history[-3:]])
+    assert last < 0.2 * first, [round(m.value, 3) for m in history]
+    metrics = pulse.data.metrics
+    assert 0.0 <= metrics["eval/success_rate"] <= 1.0 and metrics["eval/mpjpe_mm"] > 0
+    assert metrics["eval/action_error"] < first  # measured on its own evaluation rollouts, after training

@@ -120,3 +120,19 @@ def test_type_errors_are_refused_at_composition_with_the_key():
 
     with pytest.raises(ConfigCompositionException, match="algo.world_model.lr=fast"):
         composed("algo.world_model.lr=fast")
+
+
+def test_pulse_prior_action_needs_the_learned_prior():
+    with pytest.raises(ConfigError, match="algo.pulse.prior_action: a residual on the prior's mean"):
+        validate(composed("algo=pulse", "algo.vae.prior=standard_normal"))
+    cfg = validate(composed("algo=pulse", "algo.vae.prior=standard_normal", "algo.pulse.prior_action=false"))
+    assert cfg.algo.vae.prior == "standard_normal" and cfg.algo.needs == {"expert": "tracker"}
+
+
+def test_stage_needs_are_checked_with_the_key_named():
+    with pytest.raises(ConfigError, match="algo.needs.world_model: the physicsvae method needs a world_model stage"):
+        validate(composed("algo=physicsvae", "algo.needs.world_model="))
+    with pytest.raises(ConfigError, match="algo.needs.teacher: the demos method does not use a teacher stage"):
+        validate(composed("algo=demos", "+algo.needs.teacher=tracker"))
+    with pytest.raises(ConfigError, match="algo.vae.prior: the physicsvae objective"):
+        validate(composed("algo=physicsvae", "algo.vae.prior=learned"))

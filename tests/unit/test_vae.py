@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 import torch
 from torch.distributions import Normal, kl_divergence
@@ -213,3 +214,27 @@ def test_config_errors_name_the_key(field, value, message):
 def test_controlvae_without_world_model_is_an_error():
     with pytest.raises(ValueError, match="needs a world model"):
         VAELearner(15, 28, VAEConfig(), world_model=None)
+
+
+def test_the_prior_switches_change_what_is_sampled(walk_run):
+    """PULSE's Table 3 switches: the learned prior (off: N(0, I)) and the prior-residual task action (Eq. 4)."""
+    s = torch.from_numpy(walk_run.features(np.zeros(64, int), np.arange(64)).astype(np.float32))
+    g = torch.Generator().manual_seed(0)
+    torch.manual_seed(1)
+    learned = small_learner("pulse", "learned").vae
+    torch.manual_seed(1)
+    plain = small_learner("pulse", "standard_normal").vae
+    p = plain.prior_dist(s)
+    assert torch.equal(p.mean, torch.zeros_like(p.mean)) and torch.equal(p.log_std, torch.zeros_like(p.log_std))
+    z = p.rsample(g)
+    assert abs(float(z.mean())) < 0.2 and float(z.std()) == pytest.approx(1.0, abs=0.2)
+    q = learned.prior_dist(s)
+    assert float((q.mean[0] - q.mean[32]).abs().max()) > 1e-3  # the learned prior depends on the state
+    assert float(q.log_std.max()) <= learned.prior.log_std_range[1] + 1e-6
+    zero = torch.zeros_like(q.mean)
+    with torch.no_grad():
+        residual = learned.act(s, learned.task_latent(s, zero, prior_action=True))
+        at_mean = learned.act(s, q.mean)
+        absolute = learned.act(s, learned.task_latent(s, zero, prior_action=False))
+    assert torch.allclose(residual, at_mean) and not torch.allclose(residual, absolute)
+    assert torch.equal(plain.task_latent(s, zero, True), zero)  # N(0, I): the residual changes nothing

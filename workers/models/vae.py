@@ -214,3 +214,8 @@ class VAEController(nn.Module):
     def act(self, s: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
         """The policy's mean action μ_π(s, z) [..., A]."""
         return self.policy(self.state_norm(s), z)
+
+    def task_latent(self, s: torch.Tensor, z_task: torch.Tensor, prior_action: bool) -> torch.Tensor:
+        """The latent a downstream task policy's output `z_task` stands for: with `prior_action`, a residual on
+        the prior's mean, z = z_task + μ_p(s) (PULSE Eq. 4, ControlVAE Eq. 21); without, z_task itself."""
+        return z_task + self.prior_dist(s).mean if prior_action else z_task

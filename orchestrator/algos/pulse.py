@@ -1,0 +1,156 @@
+"""PULSE (Luo et al. 2024): online distillation of a tracking expert into encoder, decoder and a learned prior.
+
+DAgger-style (Alg. 1): the student (the VAE controller, z from the encoder E(z | s, s̃_{t+1})
+given the reference's next state as the goal) acts in the rollout workers; its trajectories
+go to the replay buffer; the learner (`components_distill.PulseActor`) has the teacher, the
+upstream `expert` stage, label the student's own states and takes Eq. 3's steps,
+‖a_teacher − a‖² + λ·L_regu + β·KL(E ‖ R), with β annealed (`algo.vae.beta`). The student's
+new weights are published for the next collection.
+
+Table 3's rows are configurations: the learned prior (`algo.vae.prior=learned`, off:
+`standard_normal`, N(0, I)), L_regu (`algo.vae.lambda_regu`, 0 turns it off) and the
+prior-residual action of the downstream task (`algo.pulse.prior_action`, Eq. 4, read by a task
+stage on this decoder). Evaluation: PULSE's success rate (every joint within 0.5 m of the
+reference at all times) and MPJPE tracking every clip with the encoder's mean, the action
+error against the teacher on the student's own states, and random sampling from the prior
+(time until fall).
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import numpy as np
+import torch
+
+from orchestrator.algos import Component, Method
+from orchestrator.algos.demos import expert_weights
+from orchestrator.components import ReplayActor, load_world, sim_config
+from orchestrator.components_distill import PulseActor
+from orchestrator.evaluate import evaluate_controller
+from workers.distill import teacher_actions, tracking_success
+from workers.learners.vae import build_controller
+from workers.models import body_state
+from workers.policies import VAEPolicy
+
+
+class Pulse(Method):
+    sections = ("vae", "pulse")
+    needs = ("expert",)
+
+    def __init__(self, cfg, character, upstream=None):
+        super().__init__(cfg, character, upstream)
+        self.pending: list[Any] = []
+        self.world = None
+        self.teacher = None
+        self.counters = {"credit": 0.0, "updates": 0}
+
+    def components(self) -> list[Component]:
+        b, a = self.character.num_bodies, self.character.num_actions
+        self.teacher = expert_weights(self.upstream["expert"])
+        return [
+            Component("replay", ReplayActor, (self.cfg, b, a), role="replay"),
+            Component("vae", PulseActor, (self.cfg, b, a, self.teacher), actor="learner-vae"),
+        ]
+
+    @classmethod
+    def make_policy(cls, cfg, character) -> VAEPolicy:
+        return VAEPolicy(character.num_bodies, character.num_actions, cfg.algo.vae, cfg.algo.loop.prior_probability)
+
+    def publish(self, t) -> None:
+        t.publish(t.rt.get(t.rt.call(t.handles["vae"], "get_weights")))
+
+    def start(self, t) -> None:
+        self.publish(t)
+        self.pending = t.collect(self.cfg.algo.loop.collect_steps, self.cfg.algo.loop.staleness)
+
+    def step(self, t) -> tuple[int, dict[str, float]]:
+        cfg, rt, h = self.cfg, t.rt, t.handles
+        loop, vae = cfg.algo.loop, cfg.algo.vae
+        t0 = time.perf_counter()
+        infos = rt.get([rt.call(h["replay"], "add_trajectory", f) for f in self.pending])
+        for w, info in enumerate(infos):
+            t.check_alive("replay", info.pop("incarnation"))
+            t.worker_came_back(w, info["version"])
+        t.worker_restarts()
+        collected = sum(i["transitions"] for i in infos)
+        self.pending = t.collect(loop.collect_steps, loop.staleness)
+        metrics: dict[str, float] = {}
+        if infos[-1]["size"] >= loop.warmup:
+            credit = self.counters["credit"] + loop.replay_ratio * collected / (vae.batch_size * vae.rollout_steps)
+            n = int(credit)
+            self.counters["credit"] = credit - n
+            batches = rt.call(h["replay"], "sample_batches", n, vae.batch_size, vae.rollout_steps)
+            m = rt.get(rt.call(h["vae"], "train", batches))
+            t.check_alive("vae", m.pop("incarnation"))
+            metrics.update({f"vae/{k}": float(v) for k, v in m.items()})
+            self.counters["updates"] += n
+        self.publish(t)
+        ends = sum(i["episode_ends"] for i in infos)
+        metrics.update(
+            {
+                "loop/vae_updates": float(self.counters["updates"]),
+                "rollout/episode_ends": float(ends),
+                "rollout/mean_episode_steps": collected / max(ends, 1),
+                "throughput/step_s": time.perf_counter() - t0,
+            }
+        )
+        return collected, metrics
+
+    def finish(self, t) -> None:
+        t.rt.get(self.pending)
+
+    def evaluate(self, t, final: bool) -> dict[str, float]:
+        if self.world is None:
+            self.world = load_world(self.cfg)
+        character, library = self.world
+        weights = t.rt.get(t.rt.call(t.handles["vae"], "get_weights"))
+        controller = build_controller(character.num_bodies, character.num_actions, self.cfg.algo.vae)
+        controller.load_state_dict(weights.state)
+        controller.eval().requires_grad_(False)
+        visited: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
+
+        def student(sim, bs):  # the encoder's mean given the reference's next state
+            s = body_state.features(torch.from_numpy(bs))
+            frames = sim.start_frame + sim.steps
+            ref_next = torch.from_numpy(library.features(sim.clip_id, frames + 1).astype(np.float32))
+            q, _ = controller.encode(s, ref_next)
+            a = controller.act(s, q.mean).numpy()
+            visited.append((bs.copy(), sim.clip_id.copy(), frames.copy(), a))
+            return a
+
+        with torch.no_grad():
+            track = tracking_success(student, character, library, sim_config=sim_config(self.cfg), seed=self.cfg.seed)
+        states, clips, frames, actions = (np.concatenate(x) for x in zip(*visited, strict=True))
+        teacher = self.teacher.state
+        from workers.learners.ppo import build_actor_critic
+        from workers.policies import observation_dim
+        from workers.sim.features import StateLayout
+
+        module = build_actor_critic(
+            observation_dim(teacher["observation"], StateLayout(character.num_bodies).dim),
+            character.num_actions,
+            teacher["config"],
+        )
+        module.load_state_dict(teacher["module"])
+        labels = teacher_actions(module, library, character, states, clips, frames, teacher["residual"])
+        metrics = {
+            "eval/success_rate": float(track["success_rate"]),
+            "eval/success_rate_mean_joint": float(track["success_rate_mean_joint"]),
+            "eval/mpjpe_mm": float(track["mpjpe_mm"]),
+            "eval/mpjpe_local_mm": float(track["mpjpe_local_mm"]),
+            "eval/action_error": float(((actions - labels) ** 2).sum(-1).mean()),
+        }
+        t.tracker.log_dict(track, f"eval/{'final' if final else f'iter-{t.state.iteration:07d}'}-success.json")
+        metrics.update(evaluate_controller(self.cfg, character, library, weights, t.tracker, t.state.iteration, final))
+        return metrics
+
+    def progress(self, metrics: dict[str, float]) -> dict[str, str]:
+        return {"distill": f"{metrics.get('vae/distill', float('nan')):.3g}"}
+
+    def state_dict(self) -> dict[str, Any]:
+        return dict(self.counters)
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.counters = {"credit": float(state["credit"]), "updates": int(state["updates"])}

@@ -1,0 +1,64 @@
+"""PULSE's distillation learner (`learner-vae` of `algo=pulse`): the student learns from the teacher's labels.
+
+The replay holds the student's own trajectories; each update takes windows of T
+consecutive states from it, has the teacher (the upstream tracking expert, a PPO
+actor-critic) label every state with its deterministic action (`workers.distill`),
+and takes one step of PULSE's Eq. 3 on them: ‖a_teacher − a‖² + λ·L_regu + β·KL(E ‖ R).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import torch
+
+from orchestrator.components import LearnerActor, load_world, seed_of
+from orchestrator.schema import Config
+from workers.distill import teacher_actions
+from workers.learners.base import Weights
+from workers.learners.ppo import build_actor_critic
+from workers.learners.vae import VAEBatch, VAELearner
+from workers.models import body_state
+from workers.policies import observation_dim
+from workers.replay import WindowBatch
+from workers.sim.features import StateLayout
+
+
+class PulseActor(LearnerActor):
+    def __init__(self, cfg: Config, num_bodies: int, action_dim: int, teacher: Weights):
+        super().__init__()
+        torch.set_num_threads(cfg.runtime.torch_threads)
+        torch.manual_seed(seed_of(cfg, 3))
+        self.character, self.library = load_world(cfg)
+        t = teacher.state
+        obs_dim = observation_dim(t["observation"], StateLayout(num_bodies).dim)
+        self.teacher = build_actor_critic(obs_dim, action_dim, t["config"])
+        self.teacher.load_state_dict(t["module"])
+        self.teacher.eval().requires_grad_(False)
+        self.residual = bool(t["residual"])
+        self.learner = VAELearner(num_bodies, action_dim, cfg.algo.vae, seed=seed_of(cfg, 4))
+
+    def labels(self, states: np.ndarray, clip_id: np.ndarray, frame: np.ndarray) -> np.ndarray:
+        """The teacher's actions [N, T, A] for states [N, T, B, 13] at (clip, frame) [N, T]."""
+        n, steps = clip_id.shape
+        flat = teacher_actions(
+            self.teacher,
+            self.library,
+            self.character,
+            states.reshape(n * steps, *states.shape[2:]),
+            clip_id.reshape(-1),
+            frame.reshape(-1),
+            self.residual,
+        )
+        return flat.reshape(n, steps, -1)
+
+    def batch(self, b: WindowBatch) -> VAEBatch:
+        steps = b.actions.shape[1]
+        frames = b.frame[:, None] + np.arange(steps)
+        clips = np.repeat(b.clip_id[:, None], steps, axis=1)
+        reference = body_state.reference_windows(self.library, b.clip_id, b.frame, steps)
+        return VAEBatch(b.states, reference, self.labels(b.states[:, :-1], clips, frames))
+
+    def train(self, batches: list[WindowBatch]) -> dict[str, Any]:
+        return self.report([self.learner.update(self.batch(b)) for b in batches])
