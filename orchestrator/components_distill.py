@@ -13,10 +13,11 @@ from typing import Any
 import numpy as np
 import torch
 
+from orchestrator.algos.demos import expert_weights
 from orchestrator.components import LearnerActor, load_world, seed_of
 from orchestrator.schema import Config
+from orchestrator.stages import Upstream
 from workers.distill import teacher_actions
-from workers.learners.base import Weights
 from workers.learners.ppo import build_actor_critic
 from workers.learners.vae import VAEBatch, VAELearner
 from workers.models import body_state
@@ -26,12 +27,12 @@ from workers.sim.features import StateLayout
 
 
 class PulseActor(LearnerActor):
-    def __init__(self, cfg: Config, num_bodies: int, action_dim: int, teacher: Weights):
+    def __init__(self, cfg: Config, num_bodies: int, action_dim: int, expert: Upstream):
         super().__init__()
         torch.set_num_threads(cfg.runtime.torch_threads)
         torch.manual_seed(seed_of(cfg, 3))
         self.character, self.library = load_world(cfg)
-        t = teacher.state
+        t = expert_weights(expert).state  # downloaded here: a restarted actor needs nothing from the driver
         obs_dim = observation_dim(t["observation"], StateLayout(num_bodies).dim)
         self.teacher = build_actor_critic(obs_dim, action_dim, t["config"])
         self.teacher.load_state_dict(t["module"])

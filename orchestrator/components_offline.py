@@ -1,8 +1,10 @@
 """Learner actors that train on a fixed dataset of expert demonstrations (PhysicsVAE's two stages).
 
-Each is built with the demos' arrays (on Ray they travel once, through the object store),
-splits the episodes into training and held-out rollouts (`algo.offline.holdout_rollouts`),
-and trains one epoch per `train_epoch` call: as many updates as it takes for the batches to
+Each is built with the upstream stages it reads (`orchestrator.stages.Upstream`, small), and
+downloads the demos (and the frozen layer) from the tracking store itself, so that a
+restarted actor, or one on another node, needs nothing from the driver. It splits the
+episodes into training and held-out rollouts (`algo.offline.holdout_rollouts`), and
+trains one epoch per `train_epoch` call: as many updates as it takes for the batches to
 cover the training transitions once, at the epoch's learning rate (×`lr_decay` every
 `decay_every` epochs, PhysicsVAE's schedule). `validate` measures the held-out rollouts.
 """
@@ -15,13 +17,23 @@ from typing import Any
 import numpy as np
 import torch
 
+from orchestrator.algos.demos import load_demos
 from orchestrator.components import LearnerActor, seed_of
 from orchestrator.schema import Config
+from orchestrator.stages import StageError, Upstream
 from workers.demos import DemoSet
 from workers.learners.vae import VAEBatch, VAELearner
 from workers.learners.world_model import WorldModelBatch, WorldModelLearner
 from workers.models import body_state
 from workers.models.world_model import WorldModel
+
+
+def layer_state(up: Upstream) -> dict[str, Any]:
+    """The frozen simulation layer's weights from a world_model stage's last checkpoint."""
+    state = up.checkpoint()
+    if "world_model" not in state:
+        raise StageError(f"{up.describe()}: its checkpoint has no world_model state")
+    return state["world_model"]["learner"]["module"]
 
 
 def world_model_of(cfg: Config, num_bodies: int, action_dim: int) -> WorldModel:
@@ -32,12 +44,12 @@ def world_model_of(cfg: Config, num_bodies: int, action_dim: int) -> WorldModel:
 class OfflineActor(LearnerActor):
     window: int  # transitions per sampled window
 
-    def __init__(self, cfg: Config, demos: dict[str, np.ndarray], key: int):
+    def __init__(self, cfg: Config, demos: DemoSet | Upstream, key: int):
         super().__init__()
         torch.set_num_threads(cfg.runtime.torch_threads)
         torch.manual_seed(seed_of(cfg, key))
         self.cfg = cfg
-        self.demos = DemoSet(**demos)
+        self.demos = demos if isinstance(demos, DemoSet) else load_demos(demos)[0]
         holdout = cfg.algo.offline.holdout_rollouts
         self.train_starts = self.demos.window_starts(self.window, self.demos.episodes_of(False, holdout))
         self.heldout_starts = self.demos.window_starts(self.window, self.demos.episodes_of(True, holdout))
@@ -86,7 +98,7 @@ class OfflineActor(LearnerActor):
 class OfflineWorldModelActor(OfflineActor):
     """PhysicsVAE's simulation layer: the world model on T_w-step windows of the expert's (state, action)."""
 
-    def __init__(self, cfg: Config, demos: dict[str, np.ndarray], num_bodies: int, action_dim: int):
+    def __init__(self, cfg: Config, demos: DemoSet | Upstream, num_bodies: int, action_dim: int):
         self.window = cfg.algo.world_model.rollout_steps
         super().__init__(cfg, demos, 2)
         wm = cfg.algo.world_model
@@ -117,15 +129,15 @@ class PhysicsVAEActor(OfflineActor):
     def __init__(
         self,
         cfg: Config,
-        demos: dict[str, np.ndarray],
+        demos: DemoSet | Upstream,
         num_bodies: int,
         action_dim: int,
-        world_model_state: dict[str, Any],
+        layer: dict[str, Any] | Upstream,
     ):
         self.window = cfg.algo.vae.rollout_steps
         super().__init__(cfg, demos, 3)
         self.world_model = world_model_of(cfg, num_bodies, action_dim)
-        self.world_model.load_state_dict(world_model_state)
+        self.world_model.load_state_dict(layer if isinstance(layer, dict) else layer_state(layer))
         self.learner = VAELearner(
             num_bodies, action_dim, cfg.algo.vae, world_model=self.world_model, seed=seed_of(cfg, 4)
         )

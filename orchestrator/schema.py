@@ -322,6 +322,10 @@ class Config:
     sweep_seeds: str = "0,1,2"
     # The scale this config was composed at (scale/ sets it); upstream stages are composed at the same.
     scale_name: str = "laptop"
+    # Overrides for upstream stages wherever they occur in the chain, by method: e.g.
+    # '+stage_overrides.tracker=["algo.loop.iterations=600"]' trains a longer expert for every stage above
+    # this run, '+stage_overrides.demos=["algo.needs.expert=run:<id>"]' uses a given expert run.
+    stage_overrides: dict[str, list[str]] = field(default_factory=dict)
 
 
 def register() -> None:

@@ -39,10 +39,10 @@ if TYPE_CHECKING:
 CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
 RUN_ID = re.compile(r"(?:run:)?([0-9a-f]{32})")
 # Keys that do not change what a run produces; runtime keeps only what changes the samples.
-NOT_RESULT = ("run_dir", "progress", "tracking", "resume", "preset", "sweep_seeds", "scale_name")
+NOT_RESULT = ("run_dir", "progress", "tracking", "resume", "preset", "sweep_seeds", "scale_name", "stage_overrides")
 RUNTIME_RESULT = ("rollout_workers", "envs_per_worker")
 # What an upstream stage shares with the run that needs it.
-SHARED = ("character", "motion", "runtime", "eval", "tracking", "progress", "preset", "scale_name")
+SHARED = ("character", "motion", "runtime", "eval", "tracking", "progress", "preset", "scale_name", "stage_overrides")
 SECTIONS_SHARED = ("character", "motion", "runtime", "eval", "tracking")
 
 
@@ -79,8 +79,10 @@ def compose(overrides: list[str]) -> Any:
 
 
 def upstream_config(cfg: Config, spec: str, role: str) -> Config:
-    """The config of the stage `spec` ("<algo> [key=value ...]") as `cfg` needs it in `role`."""
+    """The config of the stage `spec` ("<algo> [key=value ...]") as `cfg` needs it in `role`; then
+    `cfg.stage_overrides[<algo>]`, which apply to that method's stages anywhere above."""
     name, *overrides = spec.split()
+    overrides += list(cfg.stage_overrides.get(name, []))
     bad = [o for o in overrides if "=" not in o or o.startswith(("+", "~"))]
     if bad:
         raise ConfigError(f"algo.needs.{role}: {bad[0]!r} is not a key=value override of the {name} stage")
@@ -89,11 +91,13 @@ def upstream_config(cfg: Config, spec: str, role: str) -> Config:
     except Exception as e:
         raise ConfigError(f"algo.needs.{role}: cannot compose stage {spec!r} ({e})") from None
     shared = {k: OmegaConf.structured(getattr(cfg, k)) if k in SECTIONS_SHARED else getattr(cfg, k) for k in SHARED}
-    merged = OmegaConf.merge(base, shared, {"run_dir": cfg.run_dir}, OmegaConf.from_dotlist(overrides))
+    shared["stage_overrides"] = OmegaConf.create(cfg.stage_overrides)
+    OmegaConf.set_struct(base, False)  # the shared stage_overrides and needs may add keys; validate checks them
     try:
+        merged = OmegaConf.merge(base, shared, {"run_dir": cfg.run_dir}, OmegaConf.from_dotlist(overrides))
         return validate(merged)
-    except ConfigError as e:
-        raise ConfigError(f"algo.needs.{role} ({spec}): {e}") from None
+    except Exception as e:
+        raise ConfigError(f"algo.needs.{role} ({spec}): {_short(e)}") from None
 
 
 @dataclass

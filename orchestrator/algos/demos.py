@@ -164,17 +164,20 @@ class Demos(Method):
         return {"fell": f"{metrics.get('expert/fell_fraction', float('nan')):.2f}"}
 
 
+def load_manifest(up: Upstream) -> dict[str, Any]:
+    try:
+        return json.loads(up.artifact(MANIFEST_FILE).read_text())
+    except (json.JSONDecodeError, OSError) as e:
+        raise StageError(f"{up.describe()}: artifact {MANIFEST_FILE} is unreadable ({e})") from None
+
+
 def load_demos(up: Upstream) -> tuple[DemoSet, dict[str, Any]]:
     """The dataset and manifest of an upstream demos stage; a StageError naming the artifact if unusable."""
     from workers.demos import DemoError
 
-    path, manifest_path = up.artifact(DEMOS_FILE), up.artifact(MANIFEST_FILE)
+    manifest = load_manifest(up)
     try:
-        demos = DemoSet.load(path)
+        demos = DemoSet.load(up.artifact(DEMOS_FILE))
     except DemoError as e:
         raise StageError(f"{up.describe()}: artifact {DEMOS_FILE}: {e}") from None
-    try:
-        manifest = json.loads(manifest_path.read_text())
-    except (json.JSONDecodeError, OSError) as e:
-        raise StageError(f"{up.describe()}: artifact {MANIFEST_FILE} is unreadable ({e})") from None
     return demos, manifest

@@ -16,15 +16,11 @@ capped at `eval.fall_max_seconds`), with the tracking error of the posterior.
 
 from __future__ import annotations
 
-from dataclasses import asdict
-from typing import Any
-
 from orchestrator.algos import Component, Method
-from orchestrator.algos.demos import load_demos
+from orchestrator.algos.demos import load_manifest
 from orchestrator.components import load_world
 from orchestrator.components_offline import OfflineWorldModelActor, PhysicsVAEActor
 from orchestrator.evaluate import evaluate_controller
-from orchestrator.stages import StageError
 
 
 class Offline(Method):
@@ -35,12 +31,8 @@ class Offline(Method):
 
     def __init__(self, cfg, character, upstream=None):
         super().__init__(cfg, character, upstream)
-        self.demos, self.manifest = (None, {}) if "demos" not in self.upstream else load_demos(self.upstream["demos"])
-
-    def demos_arrays(self) -> dict[str, Any]:
-        if self.demos is None:
-            raise StageError(f"the {self.cfg.algo.name} stage has no demos (algo.needs.demos)")
-        return asdict(self.demos)
+        # The learner actor downloads the demos itself; here only the manifest, checked up front.
+        self.manifest = load_manifest(self.upstream["demos"]) if "demos" in self.upstream else {}
 
     def start(self, t) -> None:
         if t.state.iteration == 0:
@@ -76,7 +68,7 @@ class OfflineWorldModel(Offline):
 
     def components(self) -> list[Component]:
         b, a = self.character.num_bodies, self.character.num_actions
-        args = (self.cfg, self.demos_arrays(), b, a)
+        args = (self.cfg, self.upstream["demos"], b, a)
         return [Component("world_model", OfflineWorldModelActor, args, actor="learner-world_model")]
 
     def batch_size(self) -> int:
@@ -97,12 +89,7 @@ class PhysicsVAE(Offline):
 
     def components(self) -> list[Component]:
         b, a = self.character.num_bodies, self.character.num_actions
-        up = self.upstream["world_model"]
-        state = up.checkpoint()
-        if "world_model" not in state:
-            raise StageError(f"{up.describe()}: its checkpoint has no world_model state")
-        layer = state["world_model"]["learner"]["module"]
-        args = (self.cfg, self.demos_arrays(), b, a, layer)
+        args = (self.cfg, self.upstream["demos"], b, a, self.upstream["world_model"])
         return [Component("vae", PhysicsVAEActor, args, actor="learner-vae")]
 
     def batch_size(self) -> int:

@@ -51,7 +51,7 @@ class Pulse(Method):
         self.teacher = expert_weights(self.upstream["expert"])
         return [
             Component("replay", ReplayActor, (self.cfg, b, a), role="replay"),
-            Component("vae", PulseActor, (self.cfg, b, a, self.teacher), actor="learner-vae"),
+            Component("vae", PulseActor, (self.cfg, b, a, self.upstream["expert"]), actor="learner-vae"),
         ]
 
     @classmethod

@@ -103,3 +103,31 @@ def test_amp_learners_run_as_named_actors_and_come_back_from_the_last_checkpoint
         assert after["ppo/policy_lag"] == 0  # the workers were refreshed to the reloaded policy
     finally:
         rt.shutdown()
+
+
+def test_the_physicsvae_and_pulse_stages_run_on_ray_actors(smoke, tmp_path):
+    """tracker -> demos (collected by the Ray rollout workers) -> world_model -> physicsvae, then pulse on the
+    same expert, every learner an actor; each stage's run finishes in the shared store."""
+    from mlflow.tracking import MlflowClient
+
+    from orchestrator.build import run
+
+    uri = f"sqlite:///{tmp_path / 'store.db'}"
+    run(smoke("algo=physicsvae", "runtime=ray", f"tracking.uri={uri}", name="physicsvae"))
+    run(smoke("algo=pulse", "runtime=ray", f"tracking.uri={uri}", name="pulse"))
+    client = MlflowClient(uri)
+    runs = client.search_runs([e.experiment_id for e in client.search_experiments()])
+    by_algo: dict[str, list] = {}
+    for r in runs:
+        by_algo.setdefault(r.data.tags["algo"], []).append(r)
+    assert {a: len(rs) for a, rs in by_algo.items()} == {
+        "tracker": 1,
+        "demos": 1,
+        "world_model": 1,
+        "physicsvae": 1,
+        "pulse": 1,
+    }
+    assert all(r.info.status == "FINISHED" for r in runs)
+    assert by_algo["demos"][0].data.metrics["demos/episodes"] == 2  # one clip, two rollouts at smoke scale
+    assert "eval/time_until_fall_mean" in by_algo["physicsvae"][0].data.metrics
+    assert "eval/success_rate" in by_algo["pulse"][0].data.metrics

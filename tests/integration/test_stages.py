@@ -132,11 +132,10 @@ def test_physicsvae_alpha_pulls_the_simulated_next_states_toward_the_demos(pipel
     spec = "demos algo.demos.rollouts_per_clip=40 algo.demos.seconds=4"
     demos, _ = load_demos(stages.ensure("demos", spec, cfg, uri, root / "d40", "default", print))
     offline = dataclasses.replace(cfg.algo.offline, holdout_rollouts=8)
-    data = dataclasses.asdict(demos)
     wm_cfg = smoke_config(root / "unused", "algo=world_model")
     wm_cfg = dataclasses.replace(wm_cfg, algo=dataclasses.replace(wm_cfg.algo, offline=offline))
     torch.manual_seed(0)
-    layer = OfflineWorldModelActor(wm_cfg, data, 15, 28)
+    layer = OfflineWorldModelActor(wm_cfg, demos, 15, 28)
     for _ in range(20):
         layer.train_epoch()
     results = {}
@@ -144,7 +143,7 @@ def test_physicsvae_alpha_pulls_the_simulated_next_states_toward_the_demos(pipel
         vae = dataclasses.replace(cfg.algo.vae, alpha=alpha, lr=1e-3)
         c = dataclasses.replace(cfg, algo=dataclasses.replace(cfg.algo, vae=vae, offline=offline))
         torch.manual_seed(0)
-        actor = PhysicsVAEActor(c, data, 15, 28, layer.learner.model.state_dict())
+        actor = PhysicsVAEActor(c, demos, 15, 28, layer.learner.model.state_dict())
         for _ in range(10):
             actor.train_epoch()
         results[alpha] = actor.validate()

@@ -136,3 +136,15 @@ def test_stage_needs_are_checked_with_the_key_named():
         validate(composed("algo=demos", "+algo.needs.teacher=tracker"))
     with pytest.raises(ConfigError, match="algo.vae.prior: the physicsvae objective"):
         validate(composed("algo=physicsvae", "algo.vae.prior=learned"))
+
+
+def test_stage_overrides_reach_the_stages_above_and_bad_ones_name_the_need():
+    from orchestrator import stages
+
+    cfg = validate(composed("algo=physicsvae", '+stage_overrides.tracker=["algo.loop.iterations=9"]'))
+    demos = stages.upstream_config(cfg, "demos", "demos")
+    expert = stages.upstream_config(demos, "tracker", "expert")
+    assert expert.algo.loop.iterations == 9 and expert.algo.name == "tracker"
+    assert stages.config_hash(cfg) == stages.config_hash(validate(composed("algo=physicsvae")))  # hashed above
+    with pytest.raises(ConfigError, match=r"algo.needs.expert \(tracker algo.loop.iterationz=3\): Key 'iterationz'"):
+        stages.upstream_config(demos, "tracker algo.loop.iterationz=3", "expert")
