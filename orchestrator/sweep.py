@@ -81,6 +81,7 @@ class SweepCallback(Callback):
         self.spread = dict(spread or {})
         self.claims = claims
         self.stages_table = ""
+        self.expert_level: float | None = None  # the expert's own time until fall on its demos
         self.tracker = None
         self.sweep_dir: Path | None = None
         self.server = None
@@ -146,12 +147,9 @@ class SweepCallback(Callback):
         rows = ["| role | stage | run | stage hash | reused |", "| --- | --- | --- | --- | --- |"]
         rows += [f"| {r} | {u.name} | {u.run_id} | {u.stage_hash} | {u.reused} |" for r, u in upstream.items()]
         rows += [f"| {r}.{k} | | {v} | | |" for r, u in upstream.items() for k, v in u.lineage.items()]
-        quality = [
-            f"- {k}: {v:.3g}"
-            for u in upstream.values()
-            for k, v in sorted(u.metrics().items())
-            if k.startswith("expert/") and u.name == "demos"
-        ]
+        expert = {k: v for u in upstream.values() if u.name == "demos" for k, v in u.metrics().items()}
+        quality = [f"- {k}: {v:.3g}" for k, v in sorted(expert.items()) if k.startswith("expert/")]
+        self.expert_level = expert.get("expert/time_until_fall_mean")
         if quality:
             rows += ["", "The expert, on the demos it made (noisy rollouts; `own/` is its own evaluation):", *quality]
         self.stages_table = "\n".join(rows) + "\n"
@@ -196,15 +194,11 @@ class SweepCallback(Callback):
 
                 spread_png = self.sweep_dir / "spread.png"
                 sp = self.spread
-                plot_spread(
-                    rows,
-                    self.compare_by,
-                    sp["mean"],
-                    sp["std"],
-                    sp.get("label", sp["mean"]),
-                    spread_png,
-                    sp.get("title", ""),
-                )
+                level = None
+                if self.expert_level is not None and sp["mean"] == "eval/time_until_fall_mean":
+                    level = (self.expert_level, f"the expert on its demos ({self.expert_level:.2f} s)")
+                label = sp.get("label", sp["mean"])
+                plot_spread(rows, self.compare_by, sp["mean"], sp["std"], label, spread_png, sp.get("title", ""), level)
                 self.tracker.log_artifact(str(spread_png))
             if self.claims:
                 from orchestrator.report_physicsvae import CLAIMS

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import math
 
+import pytest
+
 from orchestrator import report
 
 
@@ -38,3 +40,20 @@ def test_curve_table_summarises_each_point_over_seeds():
     rows = [{"w": "1", "seed": "0", "run_id": "a"}, {"w": "1", "seed": "1", "run_id": "b"}]
     line = report.curve_table(rows, histories, "w", "r", "return").splitlines()[2]
     assert line.startswith("| 1 | 3 ± 1 |")  # final 2 and 4
+
+
+def test_alpha_claims_and_the_spread_figure_from_known_rows(tmp_path):
+    """Worked by hand: α = 0 lasts 1 s, α = 1e-3 3 s (3x, beyond the seeds' spread), α = 1e-2 2 s."""
+    from orchestrator.report_physicsvae import alpha_claims, plot_spread, pooled
+
+    rows = []
+    for alpha, times in ((0.0, (0.9, 1.1)), (1e-3, (2.9, 3.1)), (1e-2, (1.9, 2.1))):
+        for seed, t in enumerate(times):
+            rows.append({"a": alpha, "seed": seed, "m": t, "s": 0.5, "run_id": f"{alpha}-{seed}"})
+    table = alpha_claims(rows, "a", key="m")
+    assert "best α > 0: 3.00 s vs α = 0: 1.00 s, 3.00x; difference +2.00 s, beyond 2 standard errors" in table
+    assert "best α = 0.001 (inside)" in table and "α = 0.01: 2.00 s, 0.67 of the best" in table
+    mean, std = pooled(rows[:2], "m", "s")  # rollouts of two runs: means 0.9 and 1.1, each std 0.5
+    assert mean == pytest.approx(1.0) and std == pytest.approx((0.25 + 0.01) ** 0.5)
+    plot_spread(rows, "a", "m", "s", "time until fall (s)", tmp_path / "spread.png", level=(2.5, "expert"))
+    assert (tmp_path / "spread.png").stat().st_size > 0
