@@ -206,11 +206,13 @@ def ensure(role: str, spec: str, cfg: Config, uri: str, workdir: Path, experimen
     from orchestrator.build import RUN_FILE, run
 
     up.run_dir = str(workdir / "stages" / f"{up.algo.name}-{h[:8]}")
-    up.resume = False
+    # A stage cut short here before (its run FAILED or never ended) continues from its last checkpoint.
+    up.resume = checkpoint.latest(Path(up.run_dir) / "checkpoints") is not None
     up.tracking.uri = uri
     up.tracking.experiment = experiment
     up.tracking.run_name = f"{up.algo.name} stage {h[:8]}"
-    log(f"stage {role}: no finished {up.algo.name} run with hash {h} in {uri}; training it in {up.run_dir}")
+    how = "resuming it from its last checkpoint" if up.resume else "training it"
+    log(f"stage {role}: no finished {up.algo.name} run with hash {h} in {uri}; {how} in {up.run_dir}")
     run(up, upstream=above, stage_hash=h)
     new_id = json.loads((Path(up.run_dir) / RUN_FILE).read_text())["run_id"]
     return Upstream(role, up.algo.name, new_id, h, uri, cache, False, lineage)

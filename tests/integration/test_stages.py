@@ -243,3 +243,26 @@ def test_pulse_distillation_lowers_the_action_error_on_the_students_own_states(p
     metrics = pulse.data.metrics
     assert 0.0 <= metrics["eval/success_rate"] <= 1.0 and metrics["eval/mpjpe_mm"] > 0
     assert metrics["eval/action_error"] < first  # measured on its own evaluation rollouts, after training
+
+
+def test_only_a_finished_run_is_reused(pipeline):
+    uri = pipeline["uri"]
+    client = MlflowClient(uri)
+    experiment = client.get_experiment_by_name("default").experiment_id
+    for status in ("FAILED", "KILLED"):
+        r = client.create_run(experiment, tags={"stage_hash": "h-test", "algo": "tracker"})
+        client.set_terminated(r.info.run_id, status)
+    client.create_run(experiment, tags={"stage_hash": "h-test", "algo": "tracker"})  # still RUNNING
+    assert stages.find_finished(client, "h-test") is None
+    done = client.create_run(experiment, tags={"stage_hash": "h-test", "algo": "tracker"})
+    client.set_terminated(done.info.run_id, "FINISHED")
+    assert stages.find_finished(client, "h-test") == done.info.run_id
+
+
+def test_a_controlvae_posterior_can_be_the_expert(pipeline):
+    """The second expert option: demos from a ControlVAE run's posterior (z = μ_q), by `algo.needs.expert`."""
+    cfg, uri, root = pipeline["cfg"], pipeline["uri"], pipeline["root"]
+    up = stages.ensure("demos", "demos algo.needs.expert=controlvae", cfg, uri, root / "cv", "default", print)
+    demos, manifest = load_demos(up)
+    assert manifest["expert_algo"] == "controlvae" and demos.num_episodes == 2
+    assert np.isfinite(demos.actions).all() and manifest["expert"]["tracking_error_mean"] > 0
