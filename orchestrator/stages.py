@@ -127,7 +127,12 @@ class Upstream:
         try:
             out = Path(MlflowClient(self.uri).download_artifacts(self.run_id, path, str(self.cache)))
         except Exception as e:
-            raise StageError(f"{self.describe()}: artifact {path} is missing or unreadable ({_short(e)})") from None
+            hint = ""
+            if "mlflow-artifacts" in str(e):
+                hint = "; its artifacts are served by a tracking server: give that server as tracking.uri"
+            raise StageError(
+                f"{self.describe()}: artifact {path} is missing or unreadable ({_short(e)}){hint}"
+            ) from None
         if not out.exists():
             raise StageError(f"{self.describe()}: artifact {path} is missing")
         return out

@@ -99,15 +99,20 @@ class SweepCallback(Callback):
         self.sweep_dir.mkdir(parents=True, exist_ok=True)
         store = store_uri(self.sweep_dir, config.tracking.uri)
         uri = store
+        experiment = config.tracking.experiment or config.preset
         if config.tracking.uri is None and runs_in_parallel(config):
             from orchestrator.tracking.server import start_local_server
+
+            # The experiment is made in the store itself, its artifacts in files beside it (the jobs write them
+            # there directly), so that the store stays whole without the server: later commands (a preset
+            # reusing these stages, `mlflow ui`) read it as a file.
+            ensure_experiment(store, experiment)
 
             self.server = start_local_server(
                 store, self.sweep_dir / "mlartifacts", log_path=self.sweep_dir / "mlflow-server.log"
             )
             uri = self.server.uri
             print(f"sweep: parallel jobs log through the tracking server at {uri}")
-        experiment = config.tracking.experiment or config.preset
         self.tracker = MlflowTracker(
             uri=uri,
             experiment=experiment,
@@ -221,6 +226,16 @@ class SweepCallback(Callback):
             look += f" --artifacts-destination {(self.sweep_dir / 'mlartifacts').resolve()}"
         where = f"MLflow: {store}" if store.startswith("http") else f"MLflow UI: {look}"
         print(f"{where}  (sweep {self.tracker.run_id})")
+
+
+def ensure_experiment(store: str, name: str) -> None:
+    from mlflow.tracking import MlflowClient
+
+    from orchestrator.tracking.mlflow import store_artifacts
+
+    client = MlflowClient(store)
+    if client.get_experiment_by_name(name) is None:
+        client.create_experiment(name, artifact_location=store_artifacts(store))
 
 
 def child_results(children: list[dict[str, Any]], compare_by: str, metrics: list[str]) -> list[dict[str, Any]]:

@@ -226,6 +226,10 @@ def test_a_parallel_sweep_trains_the_expert_once(tmp_path):
     assert len(runs_of(store, "tracker")) == 1 and len(runs_of(store, "demos")) == 1
     points = runs_of(store, "physicsvae")
     assert len(points) == 2 and len({p.data.tags["expert_run_id"] for p in points}) == 1
+    # The server is gone; the store is whole without it: a later command reads the stages' artifacts from it.
+    demos_run = runs_of(store, "demos")[0].info.run_id
+    local = MlflowClient(store).download_artifacts(demos_run, "demos/manifest.json", str(tmp_path))
+    assert json.loads(Path(local).read_text())["expert_run"] == runs_of(store, "tracker")[0].info.run_id
 
 
 def test_pulse_distillation_lowers_the_action_error_on_the_students_own_states(pipeline):
