@@ -18,12 +18,10 @@ from orchestrator.components import LearnerActor, load_world, seed_of
 from orchestrator.schema import Config
 from orchestrator.stages import Upstream
 from workers.distill import teacher_actions
-from workers.learners.ppo import build_actor_critic
 from workers.learners.vae import VAEBatch, VAELearner
 from workers.models import body_state
-from workers.policies import observation_dim
+from workers.policies import expert_module
 from workers.replay import WindowBatch
-from workers.sim.features import StateLayout
 
 
 class PulseActor(LearnerActor):
@@ -33,10 +31,7 @@ class PulseActor(LearnerActor):
         torch.manual_seed(seed_of(cfg, 3))
         self.character, self.library = load_world(cfg)
         t = expert_weights(expert).state  # downloaded here: a restarted actor needs nothing from the driver
-        obs_dim = observation_dim(t["observation"], StateLayout(num_bodies).dim)
-        self.teacher = build_actor_critic(obs_dim, action_dim, t["config"])
-        self.teacher.load_state_dict(t["module"])
-        self.teacher.eval().requires_grad_(False)
+        self.teacher = expert_module(t, num_bodies, action_dim)
         self.residual = bool(t["residual"])
         self.learner = VAELearner(num_bodies, action_dim, cfg.algo.vae, seed=seed_of(cfg, 4))
 

@@ -70,7 +70,7 @@ class OfflineActor(LearnerActor):
         lr = self.base_lr * off.lr_decay ** (self.epoch // off.decay_every)
         for group in self.learner.optimizer.param_groups:
             group["lr"] = lr
-        updates = max(1, math.ceil(len(self.train_starts) * self.window / (self.batch_size * self.window)))
+        updates = max(1, math.ceil(len(self.train_starts) / self.batch_size))  # one pass over the windows
         metrics = []
         for _ in range(updates):
             starts = self.rng.choice(self.train_starts, size=self.batch_size)

@@ -176,6 +176,17 @@ class GaussianPolicy(Policy):
         return mean + self.base_action(sim) if self.residual else mean
 
 
+def expert_module(expert: dict[str, Any], num_bodies: int, action_dim: int) -> ActorCritic:
+    """The PPO actor-critic of an expert's weights payload (`ExpertPolicy`'s "ppo" kind), in eval mode."""
+    from workers.learners.ppo import build_actor_critic
+    from workers.sim.features import StateLayout
+
+    obs_dim = observation_dim(expert["observation"], StateLayout(num_bodies).dim)
+    module = build_actor_critic(obs_dim, action_dim, expert["config"])
+    module.load_state_dict(expert["module"])
+    return module.eval().requires_grad_(False)
+
+
 class ExpertPolicy(Policy):
     """An expert's deterministic action plus Gaussian noise of std `noise` (PhysicsVAE's demos: ε = 0.05).
 
@@ -193,14 +204,9 @@ class ExpertPolicy(Policy):
         self.controller: torch.nn.Module | None = None
 
     def set_weights(self, weights: Weights) -> None:
-        from workers.learners.ppo import build_actor_critic
-        from workers.sim.features import StateLayout
-
         w = weights.state
         if w["kind"] == "ppo":
-            obs_dim = observation_dim(w["observation"], StateLayout(self.num_bodies).dim)
-            module = build_actor_critic(obs_dim, self.action_dim, w["config"])
-            module.load_state_dict(w["module"])
+            module = expert_module(w, self.num_bodies, self.action_dim)
             self.inner, self.controller = GaussianPolicy(module, w["observation"], w["residual"]), None
         elif w["kind"] == "vae":
             controller = build_controller(self.num_bodies, self.action_dim, w["config"])

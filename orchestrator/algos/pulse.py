@@ -32,7 +32,7 @@ from orchestrator.evaluate import evaluate_controller
 from workers.distill import teacher_actions, tracking_success
 from workers.learners.vae import build_controller
 from workers.models import body_state
-from workers.policies import VAEPolicy
+from workers.policies import VAEPolicy, expert_module
 
 
 class Pulse(Method):
@@ -124,16 +124,7 @@ class Pulse(Method):
             track = tracking_success(student, character, library, sim_config=sim_config(self.cfg), seed=self.cfg.seed)
         states, clips, frames, actions = (np.concatenate(x) for x in zip(*visited, strict=True))
         teacher = self.teacher.state
-        from workers.learners.ppo import build_actor_critic
-        from workers.policies import observation_dim
-        from workers.sim.features import StateLayout
-
-        module = build_actor_critic(
-            observation_dim(teacher["observation"], StateLayout(character.num_bodies).dim),
-            character.num_actions,
-            teacher["config"],
-        )
-        module.load_state_dict(teacher["module"])
+        module = expert_module(teacher, character.num_bodies, character.num_actions)
         labels = teacher_actions(module, library, character, states, clips, frames, teacher["residual"])
         metrics = {
             "eval/success_rate": float(track["success_rate"]),

@@ -7,6 +7,7 @@ again (reused, or not), break its artifacts, and train PhysicsVAE on its data.
 from __future__ import annotations
 
 import dataclasses
+import json
 import shutil
 import subprocess
 import sys
@@ -157,25 +158,8 @@ def test_physicsvae_alpha_pulls_the_simulated_next_states_toward_the_demos(pipel
 
 def test_ablation_alpha_smoke_gives_a_parent_with_a_child_per_point_the_stages_and_the_figure(tmp_path):
     sweep_dir = tmp_path / "sweep"
-    proc = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "orchestrator",
-            "+experiment=ablation_alpha",
-            "scale=smoke",
-            "motion=walk",
-            "progress=false",
-            f"hydra.sweep.dir={sweep_dir}",
-        ],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
+    proc = cli("+experiment=ablation_alpha", f"hydra.sweep.dir={sweep_dir}")
     assert proc.returncode == 0, proc.stderr[-3000:]
-    import json
-
     info = json.loads((sweep_dir / "sweep.json").read_text())
     client = MlflowClient(info["store"])
     parent = client.get_run(info["parent_run_id"])
@@ -200,28 +184,9 @@ def test_ablation_alpha_smoke_gives_a_parent_with_a_child_per_point_the_stages_a
 @pytest.mark.slow
 def test_a_parallel_sweep_trains_the_expert_once(tmp_path):
     sweep_dir = tmp_path / "sweep"
-    proc = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "orchestrator",
-            "+experiment=ablation_alpha",
-            "scale=smoke",
-            "motion=walk",
-            "progress=false",
-            f"hydra.sweep.dir={sweep_dir}",
-            "algo.vae.alpha=0,0.001",
-            "hydra/launcher=joblib",
-            "hydra.launcher.n_jobs=2",
-        ],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
+    parallel = ("algo.vae.alpha=0,0.001", "hydra/launcher=joblib", "hydra.launcher.n_jobs=2")
+    proc = cli("+experiment=ablation_alpha", f"hydra.sweep.dir={sweep_dir}", *parallel)
     assert proc.returncode == 0, proc.stderr[-3000:]
-    import json
-
     store = json.loads((sweep_dir / "sweep.json").read_text())["store"]
     assert len(runs_of(store, "tracker")) == 1 and len(runs_of(store, "demos")) == 1
     points = runs_of(store, "physicsvae")
