@@ -23,7 +23,7 @@ from workers.learners.world_model import WorldModelBatch, WorldModelLearner
 from workers.models import body_state
 from workers.models.world_model import WorldModel
 from workers.motion.library import MotionLibrary
-from workers.replay import ReplayBuffer, Trajectory, WindowBatch
+from workers.replay import ReplayBuffer, StartBatch, Trajectory, WindowBatch
 from workers.rollout import RolloutWorker
 from workers.sim.character import Character
 from workers.sim.env import SimConfig
@@ -50,8 +50,12 @@ def sim_config(cfg: Config) -> SimConfig:
 def collection_sim_config(cfg: Config) -> SimConfig:
     """The simulator as the rollout workers run it: the loop's termination rules."""
     loop = cfg.algo.loop
-    config = replace(sim_config(cfg), max_episode_steps=loop.max_episode_steps, threads=cfg.runtime.sim_threads)
-    return config if loop.end_on_fall else replace(config, allowed_contacts=())
+    return replace(
+        sim_config(cfg),
+        max_episode_steps=loop.max_episode_steps,
+        threads=cfg.runtime.sim_threads,
+        end_on_fall=loop.end_on_fall,
+    )
 
 
 def mean_metrics(metrics: list[dict[str, float]]) -> dict[str, float]:
@@ -90,11 +94,17 @@ class RolloutActor:
             seed=seed_of(cfg, 100 + worker_id),
             worker_id=worker_id,
             recorders=method.make_recorders(cfg, character),
+            **method.worker_options(cfg),
         )
 
     def set_weights(self, weights: Weights) -> int:
         self.worker.set_weights(weights)
         return weights.version
+
+    def configure(self, settings: dict[str, Any]) -> None:
+        """Settings the loop changes during training: `start_weights` [library frames] (data balancing)."""
+        if "start_weights" in settings:
+            self.worker.library.set_frame_weights(settings["start_weights"])
 
     def collect(self, steps: int) -> Trajectory:
         return self.worker.collect(steps)
@@ -116,17 +126,34 @@ class ReplayActor(ReplayBuffer):
     def __init__(self, cfg: Config, num_bodies: int, action_dim: int):
         super().__init__(cfg.algo.loop.replay_capacity, num_bodies, action_dim, seed=seed_of(cfg, 1))
         self.incarnation = incarnation()
+        self.cfg = cfg
+        self.library: MotionLibrary | None = None  # loaded when data balancing first asks
 
     def add_trajectory(self, trajectory: Trajectory) -> dict[str, Any]:
         """Store a trajectory; a summary for the loop (the trajectory itself stays here)."""
         self.add(trajectory)
+        extras = trajectory.extras
+        counts = ("switches", "switch_falls", "switch_recoveries")
         return {
             "transitions": int(trajectory.actions.shape[0] * trajectory.actions.shape[1]),
             "version": int(trajectory.version),
             "episode_ends": int(trajectory.done.sum()),
             "size": len(self),
             "incarnation": self.incarnation,
+            "reward_sum": float(extras["reward"].sum()) if "reward" in extras else 0.0,
+            **{k: int(extras[k]) for k in counts if k in extras},
         }
+
+    def frame_returns(self, values: np.ndarray, gamma: float) -> tuple[np.ndarray, np.ndarray]:
+        """Data balancing (ControlVAE Eq. 18): (visits, summed V*) per library frame over the stored
+        trajectories, bootstrapped with `values` [library frames]."""
+        from workers.balancing import frame_sums, library_rows
+
+        if self.library is None:
+            _, self.library = load_world(self.cfg)
+        lib = self.library
+        clip, frame, returns = self.discounted_returns(gamma, lambda c, f: values[library_rows(lib, c, f)])
+        return frame_sums(library_rows(lib, clip, frame), returns, lib.total_frames)
 
     def sample_batches(self, count: int, size: int, length: int) -> list[WindowBatch]:
         """`count` batches of windows; none from an empty buffer, which is one that Ray has just
@@ -134,6 +161,13 @@ class ReplayActor(ReplayBuffer):
         if len(self) == 0:
             return []
         return [self.sample_windows(size, length) for _ in range(count)]
+
+    def sample_start_batches(self, count: int, size: int, length: int) -> list[StartBatch]:
+        """`count` batches of `size` single stored states (ControlVAE's VAE starts), each with
+        `size · (length + 1)` more for the state normaliser: as many as windows of `length` feed it."""
+        if len(self) == 0:
+            return []
+        return [self.sample_starts(size, size * (length + 1)) for _ in range(count)]
 
 
 class LearnerActor:
@@ -192,15 +226,18 @@ class VAEActor(LearnerActor):
         self.world_model_version = weights.version
         return weights.version
 
-    def train(self, batches: list[WindowBatch]) -> dict[str, Any]:
-        """One update per window: its simulated start and the reference clip that follows its first frame."""
+    def train(self, batches: list[WindowBatch] | list[StartBatch]) -> dict[str, Any]:
+        """One update per batch: each window's first state (or each single state) starts a synthetic
+        rollout that tracks the reference clip following its frame."""
         steps = self.learner.config.rollout_steps
-        metrics = [
-            self.learner.update(
-                VAEBatch(b.states, body_state.reference_windows(self.library, b.clip_id, b.frame, steps))
-            )
-            for b in batches
-        ]
+        metrics = []
+        for b in batches:
+            reference = body_state.reference_windows(self.library, b.clip_id, b.frame, steps)
+            if isinstance(b, StartBatch):
+                batch = VAEBatch(b.states[:, None], reference, norm_states=b.norm_states)
+            else:
+                batch = VAEBatch(b.states, reference)
+            metrics.append(self.learner.update(batch))
         return {**self.report(metrics), "world_model_version": float(self.world_model_version)}
 
     def state_dict(self) -> dict[str, Any]:

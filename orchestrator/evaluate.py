@@ -2,8 +2,12 @@
 
 - time-until-fall (PhysicsVAE Fig. 9): one standing start, z from the prior every
   control step, `eval.fall_rollouts` rollouts capped at `eval.fall_max_seconds`.
-- tracking error (ControlVAE Fig. 14): each clip tracked with the posterior for
-  `eval.tracking_seconds`; mean body-position error relative to the root.
+- tracking error (ControlVAE Fig. 14): every clip divided into consecutive segments of
+  `eval.tracking_seconds`, each tracked with the posterior; mean body-position error
+  relative to the root, per clip and over all segments.
+- random sampling (ControlVAE Fig. 5): `eval.random_rollouts` rollouts of
+  `eval.random_steps` control steps from random dataset states, z from the prior;
+  the share that fell and the distance travelled, with the roots' paths as a figure.
 - pose error after dynamic time warping (AMP Eq. 10, Table 3), for PPO policies:
   `eval.pose_episodes` episodes of up to `eval.pose_seconds`, with a figure of the
   error over time.
@@ -22,7 +26,7 @@ from matplotlib.figure import Figure
 from orchestrator.components import sim_config
 from orchestrator.schema import Config
 from orchestrator.tracking.base import Tracker
-from workers.evaluation import time_until_fall, tracking_error
+from workers.evaluation import random_sampling, time_until_fall, tracking_error
 from workers.imitation_eval import pose_error_episodes
 from workers.learners.base import Weights
 from workers.learners.vae import build_controller
@@ -61,19 +65,37 @@ def evaluate_controller(
             sim_config=sim_config(cfg),
             seed=cfg.seed,
         )
+        walk = random_sampling(
+            controller,
+            character,
+            library,
+            num_rollouts=cfg.eval.random_rollouts,
+            steps=cfg.eval.random_steps,
+            sim_config=sim_config(cfg),
+            seed=cfg.seed,
+        )
+    clips = {k: v for k, v in track.items() if k not in ("mean", "segments")}
     metrics = {
         "eval/time_until_fall_mean": float(fall["mean"]),
         "eval/time_until_fall_std": float(fall["std"]),
         "eval/time_until_fall_median": float(fall["median"]),
         "eval/tracking_error_mean": float(track["mean"]),
+        "eval/random_sampling_fell": walk["fell"],
+        "eval/random_sampling_distance": walk["distance"],
     }
-    metrics.update({f"eval/tracking_error/{k}": float(v) for k, v in track.items() if k != "mean"})
-    report = {"iteration": iteration, "policy_version": weights.version, "time_until_fall": fall, "tracking": track}
+    metrics.update({f"eval/tracking_error/{k}": float(v) for k, v in clips.items()})
+    report = {
+        "iteration": iteration,
+        "policy_version": weights.version,
+        "time_until_fall": fall,
+        "tracking": track,
+        "random_sampling": {k: v for k, v in walk.items() if k != "roots"},
+    }
     name = "final" if final else f"iter-{iteration:07d}"
     tracker.log_dict(_jsonable(report), f"eval/{name}.json")
     with tempfile.TemporaryDirectory() as tmp:
         png = Path(tmp) / f"{name}.png"
-        _plot(fall, track, png, f"policy version {weights.version}")
+        _plot(fall, clips, walk, png, f"policy version {weights.version}")
         tracker.log_artifact(str(png), "eval")
     return metrics
 
@@ -88,15 +110,21 @@ def _jsonable(x: Any) -> Any:
     return x
 
 
-def _plot(fall: dict[str, Any], track: dict[str, float], path: Path, title: str) -> None:
-    fig = Figure(figsize=(10, 3.5))
-    a, b = fig.subplots(1, 2)
+def _plot(fall: dict[str, Any], track: dict[str, float], walk: dict[str, Any], path: Path, title: str) -> None:
+    fig = Figure(figsize=(15, 4))
+    a, b, c = fig.subplots(1, 3)
     a.hist(np.asarray(fall["times"]), bins=20, color="tab:blue")
     a.set_xlabel("time until fall (s)")
     a.set_ylabel("rollouts")
-    clips = sorted(k for k in track if k != "mean")
+    clips = sorted(track)
     b.barh(clips, [track[k] for k in clips], color="tab:orange")
-    b.set_xlabel("tracking error (m)")
+    b.set_xlabel("tracking error (m), 2-second segments")
+    for root in walk["roots"]:
+        c.plot(root[:, 0], root[:, 1], lw=0.8)
+    c.set_aspect("equal", adjustable="datalim")
+    c.set_xlabel("x (m)")
+    c.set_ylabel("y (m)")
+    c.set_title(f"random sampling: {walk['fell']:.0%} fell, {walk['distance']:.1f} m travelled", fontsize=9)
     fig.suptitle(title)
     fig.tight_layout()
     fig.savefig(path, dpi=100)

@@ -74,6 +74,10 @@ class Trainer:
             runtime.spawn(RolloutActor, cfg, i, name=f"rollout-{i}", resources=worker_res) for i in range(num_workers)
         ]
         self.worker_versions = [-1] * len(self.workers)
+        # Settings the method gives every worker (`configure_workers`), and which of them each worker has.
+        self.worker_settings: dict[str, Any] = {}
+        self.settings_version = 0
+        self.worker_settings_versions = [0] * len(self.workers)
         self.weights_version = -1
         self.weights_ref: Any = None
         self.restarts = 0
@@ -91,11 +95,20 @@ class Trainer:
             self.weights_ref = self.rt.put(weights)
             self.weights_version = weights.version
 
+    def configure_workers(self, **settings: Any) -> None:
+        """Settings for every rollout worker (`RolloutActor.configure`), sent before its next collect,
+        and again to a worker that restarted."""
+        self.worker_settings.update(settings)
+        self.settings_version += 1
+
     def collect(self, steps: int, staleness: int) -> list[Any]:
         """One collect call per worker (futures of trajectories); a worker more than `staleness`
-        versions behind, or without weights, gets the newest first."""
+        versions behind, or without weights, gets the newest first, and the settings it lacks."""
         pending = []
         for i, worker in enumerate(self.workers):
+            if self.worker_settings_versions[i] < self.settings_version:
+                self.rt.call(worker, "configure", self.worker_settings)
+                self.worker_settings_versions[i] = self.settings_version
             if self.weights_version - self.worker_versions[i] > staleness or self.worker_versions[i] < 0:
                 self.rt.call(worker, "set_weights", self.weights_ref)
                 self.worker_versions[i] = self.weights_version
@@ -106,6 +119,7 @@ class Trainer:
         """A worker reported weights older than it was sent: it restarted; resend the newest."""
         if version < self.worker_versions[w]:
             self.worker_versions[w] = -1
+            self.worker_settings_versions[w] = 0
             self.restarts = -1  # recount now
 
     def worker_restarts(self) -> int:

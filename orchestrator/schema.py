@@ -90,8 +90,26 @@ class LoopConfig:
     iterations: int = 200
     # Control steps each rollout worker collects per iteration, over all its environments.
     collect_steps: int = 16
-    # Learner samples (transitions in rollouts) per collected sample, for each learner.
+    # Learner samples (transitions in rollouts) per collected sample, for each learner...
     replay_ratio: float = 4.0
+    # ...unless set here per learner (ControlVAE's schedule: world_model 16, vae 48).
+    replay_ratios: dict[str, float] = field(default_factory=dict)
+    # ControlVAE: where the VAE's synthetic rollouts start. "states": any stored state, drawn singly
+    # (the paper's "start states randomly selected from the simulation buffer"), with as many more
+    # states for the normaliser as windows would feed it; "windows": the first state of a stored
+    # window of rollout_steps transitions (never one of the last rollout_steps - 1 before an end).
+    vae_starts: str = "states"
+    # ControlVAE's data balancing (§3.4.3): every balance_every iterations (the paper: 200; 0: off), each
+    # library frame's value moves toward V* of Eq. 18 (discount balance_gamma) by balance_rate (Eq. 19's
+    # rate, not given in the paper), and starts are drawn ∝ 1/max(0.01, V).
+    balance_every: int = 200
+    balance_rate: float = 0.5
+    balance_gamma: float = 0.95
+    # ControlVAE's trajectory sampler (§3.4.4): per environment, switches of the reference clip per second
+    # of collection (the paper gives no rate; 0: none), and the seconds after a switch in which a fall is
+    # counted against it (otherwise a recovery).
+    switch_rate: float = 0.0
+    switch_window: float = 2.0
     # Transitions kept in the replay buffer (ControlVAE N_B = 50,000); the oldest are evicted.
     replay_capacity: int = 50_000
     # Transitions collected before the first update.
@@ -123,6 +141,15 @@ class LoopConfig:
                 raise ConfigError(f"algo.loop.{key} must be at least 1, got {getattr(self, key)}")
         if self.replay_ratio <= 0:
             raise ConfigError(f"algo.loop.replay_ratio must be positive, got {self.replay_ratio}")
+        for key, ratio in self.replay_ratios.items():
+            if ratio <= 0:
+                raise ConfigError(f"algo.loop.replay_ratios.{key} must be positive, got {ratio}")
+        if self.vae_starts not in ("states", "windows"):
+            raise ConfigError(f"algo.loop.vae_starts must be 'states' or 'windows', got {self.vae_starts!r}")
+        if self.balance_every < 0 or not 0 < self.balance_rate <= 1 or not 0 < self.balance_gamma <= 1:
+            raise ConfigError("algo.loop.balance_every must be non-negative, balance_rate and balance_gamma in (0, 1]")
+        if self.switch_rate < 0 or self.switch_window <= 0:
+            raise ConfigError("algo.loop.switch_rate must be non-negative and algo.loop.switch_window positive")
         if not 0 <= self.prior_probability <= 1:
             raise ConfigError(f"algo.loop.prior_probability must be in [0, 1], got {self.prior_probability}")
 
@@ -284,16 +311,22 @@ class EvalConfig:
     # Time-until-fall (PhysicsVAE Fig. 9): rollouts from one standing start, z from the prior every step.
     fall_rollouts: int = 100
     fall_max_seconds: float = 60.0
-    # Tracking error (ControlVAE Fig. 14): seconds of each clip tracked with the posterior.
+    # Tracking error (ControlVAE Fig. 14): every clip cut into consecutive segments of this many
+    # seconds, each tracked with the posterior from its first frame.
     tracking_seconds: float = 2.0
+    # Random sampling (ControlVAE Fig. 5): rollouts from random dataset states, z from the prior for
+    # random_steps control steps (200: 10 s at the paper's 20 Hz, 6.7 s at our 30 Hz).
+    random_rollouts: int = 32
+    random_steps: int = 200
     # Pose error after dynamic time warping (AMP Eq. 10, Table 3): episodes of up to pose_seconds
     # from random reference starts, deterministic actions (AMP: 32 episodes of up to 20 s per seed).
     pose_episodes: int = 32
     pose_seconds: float = 20.0
 
     def __post_init__(self) -> None:
-        if self.fall_rollouts < 1:
-            raise ConfigError(f"eval.fall_rollouts must be at least 1, got {self.fall_rollouts}")
+        for key in ("fall_rollouts", "random_rollouts", "random_steps"):
+            if getattr(self, key) < 1:
+                raise ConfigError(f"eval.{key} must be at least 1, got {getattr(self, key)}")
         if self.pose_episodes < 1 or self.pose_seconds <= 0:
             raise ConfigError("eval.pose_episodes must be at least 1 and eval.pose_seconds positive")
         if self.fall_max_seconds <= 0 or self.tracking_seconds <= 0:

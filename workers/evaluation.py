@@ -4,12 +4,14 @@
   fixed reference state, z is drawn from the prior at every control step, and a
   rollout ends at its first fall (a ground contact of a body other than the feet)
   or at `max_seconds`. Tracking termination and clip ends play no part.
-- `tracking_error` (ControlVAE Fig. 14): each clip is tracked from its first
-  frame with the posterior mean z = μ_q(s_t, s̃_{t+1}); the error is the mean over
-  steps and non-root bodies of ‖(x_j − x_root) − (x̃_j − x̃_root)‖ in metres
-  (AMP's Eq. 10 without time warping).
+- `tracking_error` (ControlVAE Fig. 14): every clip is divided into consecutive
+  2-second segments, each tracked from its first frame with the posterior mean
+  z = μ_q(s_t, s̃_{t+1}); the error is the mean over steps and non-root bodies of
+  ‖(x_j − x_root) − (x̃_j − x̃_root)‖ in metres (AMP's Eq. 10 without time warping).
+- `random_sampling` (ControlVAE Fig. 5): from random dataset states, z from the
+  prior every control step for 200 steps; falls and distance travelled.
 
-Both batch their rollouts as the environments of one `BatchedSim` and run the
+All batch their rollouts as the environments of one `BatchedSim` and run the
 networks in eval mode without gradients; the controller's mode is restored after.
 Actions are the policy's mean (no exploration noise).
 """
@@ -142,6 +144,26 @@ def time_until_fall(
 # ----------------------------------------------------------------------------
 # Tracking error
 # ----------------------------------------------------------------------------
+def tracking_segments(library: MotionLibrary, seconds: float, control_hz: float) -> tuple[np.ndarray, ...]:
+    """ControlVAE Fig. 14's division of every clip into consecutive segments of `seconds`.
+
+    (clip [S], start frame [S], control steps [S]): a clip of n frames has segments starting at
+    frames 0, L, 2L, ... (L = seconds · control_hz steps) below n (a one-shot clip: below its last
+    frame). A one-shot clip's last segment ends on its last frame; a cyclic clip's every segment
+    runs L steps, through the next cycle where it must.
+    """
+    length = max(int(round(seconds * control_hz)), 1)
+    clips, starts, steps = [], [], []
+    for c in range(library.num_clips):
+        n, loop = int(library.num_frames[c]), bool(library.loop[c])
+        end = n if loop else n - 1  # a one-shot clip's last frame has no successor to track
+        for start in range(0, max(end, 1), length):
+            clips.append(c)
+            starts.append(start)
+            steps.append(length if loop else max(min(length, end - start), 1))
+    return np.array(clips), np.array(starts), np.array(steps)
+
+
 def tracking_error(
     controller: VAEController | None,
     library: MotionLibrary,
@@ -153,23 +175,23 @@ def tracking_error(
 ) -> dict[str, float]:
     """Per clip, the mean body-position error relative to the root (metres) while tracking it.
 
-    Every clip is one environment started on its frame 0 and driven by a = μ_π(s, μ_q(s, s̃_{t+1}))
-    (or by `policy`, which replaces the controller, e.g. `reference_targets(library)`) for
-    `clip_seconds`; a one-shot clip shorter than that is tracked to its last frame, a cyclic one
-    through its cycles. A character that falls is not reset: it keeps trying and its error keeps
-    counting, so a fall shows as a large error rather than as a shorter average.
+    Every clip is divided into consecutive segments of `clip_seconds` (`tracking_segments`), as
+    ControlVAE's Fig. 14 divides its sequences into 2-second clips; each segment is one environment
+    started on the reference state of its first frame and driven by a = μ_π(s, μ_q(s, s̃_{t+1})) (or by
+    `policy`, which replaces the controller, e.g. `reference_targets(library)`). A character that falls
+    is not reset: it keeps trying and its error keeps counting, so a fall shows as a large error rather
+    than as a shorter average.
 
-    Returns {clip name: error, ..., "mean": the unweighted mean over clips}.
+    Returns {clip name: mean error over its segments' steps, ..., "mean": over every segment's steps
+    (each second of data counts alike), "segments": how many}.
     """
     if controller is None and policy is None:
         raise ValueError("tracking_error needs a controller or a policy")
     config = _no_tracking_termination(sim_config)
-    n = library.num_clips
+    clips, starts, steps = tracking_segments(library, clip_seconds, config.control_hz)
+    n = len(clips)
     sim = BatchedSim(character, library, n, config, seed=seed)
-    clips = np.arange(n)
-    sim.reset(clips, clips, np.zeros(n, int))
-    wanted = max(int(round(clip_seconds * config.control_hz)), 1)
-    steps = np.where(library.loop, wanted, np.minimum(wanted, library.num_frames - 1))  # [n]
+    sim.reset(np.arange(n), clips, starts)
     total = np.zeros(n)
     with _inference(controller):
         for t in range(int(steps.max())):
@@ -183,7 +205,56 @@ def tracking_error(
             result = sim.step(actions)
             err = relative_position_error(result.kin.xpos, sim.reference_state().xpos)
             total += np.where(t < steps, err, 0.0)
-    per_clip = total / np.maximum(steps, 1)
-    out = {name: float(e) for name, e in zip(library.names, per_clip, strict=True)}
-    out["mean"] = float(per_clip.mean())
+    out = {name: float(total[clips == c].sum() / steps[clips == c].sum()) for c, name in enumerate(library.names)}
+    out["mean"] = float(total.sum() / steps.sum())
+    out["segments"] = float(n)
     return out
+
+
+# ----------------------------------------------------------------------------
+# Random sampling
+# ----------------------------------------------------------------------------
+def random_sampling(
+    controller: VAEController,
+    character: Character,
+    library: MotionLibrary,
+    num_rollouts: int = 32,
+    steps: int = 200,
+    sim_config: SimConfig | None = None,
+    seed: int = 0,
+) -> dict:
+    """ControlVAE's random sampling (Fig. 5): from random dataset states, z ~ p(z | s) every control step.
+
+    Starts are drawn uniformly over the library's frames (never a one-shot clip's last); nothing ends a
+    rollout. Returns {"fell": fraction of rollouts that fell at least once, "distance": mean horizontal
+    distance (m) from the start to the end, "path": mean horizontal path length of the root (m),
+    "roots": [R, steps + 1, 2] root positions relative to each start, for the figure}.
+    """
+    if num_rollouts < 1 or steps < 1:
+        raise ValueError(f"need num_rollouts >= 1 and steps >= 1, got {num_rollouts} and {steps}")
+    config = _no_tracking_termination(sim_config)
+    rng = np.random.default_rng(seed)
+    usable = np.ones(library.total_frames, bool)
+    usable[(library.offsets + library.num_frames - 1)[~library.loop & (library.num_frames > 1)]] = False
+    rows = rng.choice(np.flatnonzero(usable), size=num_rollouts)
+    clip_ids = np.searchsorted(library.offsets, rows, side="right") - 1
+    sim = BatchedSim(character, library, num_rollouts, config, seed=seed)
+    sim.reset(np.arange(num_rollouts), clip_ids, rows - library.offsets[clip_ids])
+    generator = torch.Generator().manual_seed(seed)
+    roots = np.empty((steps + 1, num_rollouts, 2))
+    roots[0] = sim.kin_state().xpos[:, 0, :2]
+    fell = np.zeros(num_rollouts, bool)
+    with _inference(controller):
+        for t in range(steps):
+            s = _features(sim)
+            z = controller.prior_dist(s).rsample(generator)
+            result = sim.step(controller.act(s, z).numpy())
+            fell |= result.fell
+            roots[t + 1] = result.kin.xpos[:, 0, :2]
+    roots = np.swapaxes(roots - roots[:1], 0, 1)
+    return {
+        "fell": float(fell.mean()),
+        "distance": float(np.linalg.norm(roots[:, -1], axis=-1).mean()),
+        "path": float(np.linalg.norm(np.diff(roots, axis=1), axis=-1).sum(1).mean()),
+        "roots": roots,
+    }

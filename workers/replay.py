@@ -6,7 +6,9 @@ buffer stores each stream's T transitions of one push contiguously, and links
 each transition to its successor in the same stream:
 
 - inside a push, transition t links to t+1 unless the environment was reset
-  after t (done[t]);
+  after t (done[t]) or its reference clip was switched after t (the extra
+  `switched[t]`: the next state is the same body, but the reference it is paired
+  with jumps, so no window crosses a switch);
 - across pushes, the last transition of a stream's previous push links to the
   first of its new push when the former is still stored, was not done, and its
   true successor is bit for bit the new first state (so a worker that restarted,
@@ -24,6 +26,7 @@ or a gap, and can be longer than one push.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -48,7 +51,8 @@ class Trajectory:
     version: int  # the policy version that collected it
     worker: int  # the worker that collected it
     # What the method's learners need beyond the body states (`workers.rollout`): the policy's
-    # observations, log-probabilities and values, Φ(s), rewards, truncations. The buffer ignores them.
+    # observations, log-probabilities and values, Φ(s), rewards, truncations. The buffer keeps
+    # `reward` [T, M] (data balancing reads it) and cuts links at `switched` [T, M]; it ignores the rest.
     extras: dict[str, np.ndarray] = field(default_factory=dict)
 
     @property
@@ -67,6 +71,16 @@ class WindowBatch:
     version: np.ndarray  # [n] policy version that collected the first transition
 
 
+@dataclass
+class StartBatch:
+    """n single stored states, the starts of synthetic rollouts, and more states for input statistics."""
+
+    states: np.ndarray  # [n, B, 13]
+    clip_id: np.ndarray  # [n] reference clip of each state
+    frame: np.ndarray  # [n] reference frame of each state
+    norm_states: np.ndarray  # [k, B, 13] drawn independently of the starts
+
+
 class ReplayBuffer:
     """A ring of `capacity` transitions; the oldest are evicted first."""
 
@@ -81,7 +95,8 @@ class ReplayBuffer:
         self._states = np.zeros((c, num_bodies, 13), np.float32)
         self._next_states = np.zeros((c, num_bodies, 13), np.float32)
         self._actions = np.zeros((c, action_dim), np.float32)
-        self._done = np.zeros(c, bool)
+        self._done = np.zeros(c, bool)  # the link to the next transition is cut (episode end or clip switch)
+        self._reward = np.zeros(c, np.float32)
         self._clip_id = np.zeros(c, np.int64)
         self._frame = np.zeros(c, np.int64)
         self._version = np.zeros(c, np.int64)
@@ -124,7 +139,10 @@ class ReplayBuffer:
         def env_major(x: np.ndarray) -> np.ndarray:
             return np.swapaxes(x, 0, 1).reshape((n,) + x.shape[2:])
 
-        done = env_major(np.asarray(traj.done, bool))
+        cut = np.asarray(traj.done, bool) | np.asarray(traj.extras.get("switched", False), bool)
+        done = env_major(cut)
+        reward = traj.extras.get("reward")
+        self._reward[pos] = 0.0 if reward is None else env_major(np.asarray(reward, np.float32))
         self._states[pos] = env_major(traj.states)
         self._next_states[pos] = env_major(traj.next_states)
         self._actions[pos] = env_major(traj.actions)
@@ -217,6 +235,31 @@ class ReplayBuffer:
         idx = self.rng.integers(self._size, size=n)
         return self._states[idx], self._clip_id[idx], self._frame[idx]
 
+    def discounted_returns(
+        self, gamma: float, bootstrap: Callable[[np.ndarray, np.ndarray], np.ndarray]
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Data balancing's V* (ControlVAE Eq. 18) of every stored transition: (clip_id, frame, V*), [size] each.
+
+        Rewards are the stored ones; a trajectory ends where its links do, and is bootstrapped there
+        with `bootstrap(clip_id, frame)` [n] of the reference frame after its last state.
+        """
+        from workers.balancing import discounted_returns
+
+        size = self._size
+        clip, frame, successor = self._clip_id[:size], self._frame[:size], self._next[:size]
+        ends = np.flatnonzero(successor < 0)
+        boot = np.zeros(size)
+        boot[ends] = bootstrap(clip[ends], frame[ends] + 1)
+        order = np.argsort(self._uid[:size], kind="stable")
+        g = discounted_returns(self._reward[:size].astype(np.float64), successor, order, boot, gamma)
+        return clip.copy(), frame.copy(), g
+
+    def sample_starts(self, n: int, norm_states: int) -> StartBatch:
+        """n stored states drawn uniformly (any of them: the last ones before an episode end too, which no
+        window of more than one step starts at) and `norm_states` more for input statistics."""
+        states, clip_id, frame = self.sample_states(n)
+        return StartBatch(states, clip_id, frame, self.sample_states(norm_states)[0])
+
     # Reporting -----------------------------------------------------------------
     def stats(self) -> dict[str, float]:
         """Size, fill fraction, total added, and the policy versions of what is stored."""
@@ -233,7 +276,7 @@ class ReplayBuffer:
         return out
 
     # Checkpoints -----------------------------------------------------------------
-    _ARRAYS = "states next_states actions done clip_id frame version stream step uid next".split()
+    _ARRAYS = "states next_states actions done reward clip_id frame version stream step uid next".split()
 
     def state_dict(self) -> dict[str, Any]:
         """The stored transitions, links, counters and RNG state: NumPy arrays and plain types only."""
@@ -261,7 +304,7 @@ class ReplayBuffer:
         size = int(state["size"])
         for k in self._ARRAYS:
             arr = getattr(self, "_" + k)
-            arr[:size] = state["arrays"][k]
+            arr[:size] = state["arrays"].get(k, 0)  # rewards are absent from older checkpoints
             arr[size:] = -1 if k in ("uid", "next") else 0
         self._last = {int(k): (int(s), int(u), int(t)) for k, s, u, t in np.asarray(state["last"]).reshape(-1, 4)}
         self._ptr = int(state["ptr"])

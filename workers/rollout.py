@@ -113,7 +113,11 @@ class RolloutWorker:
         seed: int = 0,
         worker_id: int = 0,
         recorders: Sequence[Recorder] = (),
+        switch_rate: float = 0.0,
+        switch_window: float = 2.0,
     ):
+        if switch_rate < 0 or switch_window <= 0:
+            raise ValueError(f"need switch_rate >= 0 and switch_window > 0, got {switch_rate} and {switch_window}")
         self.library = library
         self.worker_id = worker_id
         sim_seed, np_seed, torch_seed = np.random.SeedSequence([seed, worker_id]).generate_state(3)
@@ -131,6 +135,12 @@ class RolloutWorker:
         self.collect_seconds = 0.0
         self.returns = np.zeros(num_envs)  # running sums of the recorded reward, when there is one
         self.finished_returns: list[float] = []
+        # Clip switches (ControlVAE §3.4.4): per environment and control step with this probability, the
+        # reference jumps to a start drawn like a reset's; a fall within `switch_window` seconds after a
+        # switch counts against it, none for that long as a recovery.
+        self.switch_probability = switch_rate / self.sim.config.control_hz
+        self.switch_window_steps = max(int(round(switch_window * self.sim.config.control_hz)), 1)
+        self.since_switch = np.full(num_envs, -1)  # control steps since the last switch; -1: none pending
 
     @property
     def num_envs(self) -> int:
@@ -153,6 +163,8 @@ class RolloutWorker:
         actions = np.empty((steps, m, sim.action_dim), np.float32)
         done = np.empty((steps, m), bool)
         truncated = np.empty((steps, m), bool)
+        switched = np.zeros((steps, m), bool)
+        switch_counts = np.zeros(3, np.int64)  # switches, falls after one, recoveries
         clip_id = np.empty((steps, m), np.int64)
         frame = np.empty((steps, m), np.int64)
         extras: dict[str, np.ndarray] = {}
@@ -178,6 +190,8 @@ class RolloutWorker:
             for r in self.recorders:
                 r.record(t, sim, result)
             bs = next_states[t]
+            if self.switch_probability > 0:
+                self._follow_switches(result, switch_counts)
             if result.done.any():
                 ids = np.flatnonzero(result.done)
                 if policy.observes and truncated[t].any():
@@ -192,9 +206,15 @@ class RolloutWorker:
                 for r in self.recorders:
                     if hasattr(r, "after_reset"):
                         r.after_reset(sim, ids)
+            if self.switch_probability > 0:
+                switched[t] = self._switch(~result.done)
+                switch_counts[0] += int(switched[t].sum())
         for r in self.recorders:
             extras.update(r.finish())
         extras["truncated"] = truncated
+        if self.switch_probability > 0:
+            extras["switched"] = switched
+            extras.update(zip(("switches", "switch_falls", "switch_recoveries"), switch_counts, strict=True))
         if policy.observes:
             extras["last_obs"] = policy.observe(sim, bs)
             extras["final_rows"] = np.asarray(final_rows, np.int64).reshape(-1, 2)
@@ -256,11 +276,35 @@ class RolloutWorker:
             self.steps_collected += int(length.sum())
         return out
 
+    def _switch(self, running: np.ndarray) -> np.ndarray:
+        """Switch the reference of running environments at the switch rate; [M] which switched."""
+        switch = running & (self.rng.random(self.num_envs) < self.switch_probability)
+        ids = np.flatnonzero(switch)
+        if len(ids):
+            clips, frames = self.library.sample_starts(len(ids), self.rng)
+            self.sim.switch_reference(ids, clips, frames)
+            self.since_switch[ids] = 0
+            for r in self.recorders:
+                if hasattr(r, "after_switch"):
+                    r.after_switch(self.sim, ids)
+        return switch
+
+    def _follow_switches(self, result: StepResult, counts: np.ndarray) -> None:
+        """Count the falls (counts[1]) and recoveries (counts[2]) of the environments that switched lately."""
+        pending = self.since_switch >= 0
+        self.since_switch[pending] += 1
+        fell = pending & result.fell
+        recovered = pending & ~result.fell & (self.since_switch >= self.switch_window_steps)
+        counts[1] += int(fell.sum())
+        counts[2] += int(recovered.sum())
+        self.since_switch[fell | recovered | result.done] = -1
+
     def _count_ends(self, result, ids: np.ndarray) -> None:
         self.episodes += len(ids)
         self.episode_steps += int(self.sim.steps[ids].sum())
         for key in self.ends:
-            self.ends[key] += int(getattr(result, key)[ids].sum())
+            if key != "fell" or result.end_on_fall:
+                self.ends[key] += int(getattr(result, key)[ids].sum())
 
     def _count_returns(self, reward: np.ndarray, done: np.ndarray) -> None:
         for t in range(reward.shape[0]):
@@ -306,6 +350,7 @@ class RolloutWorker:
             "generator": self.generator.get_state().numpy().copy(),
             "policy": self.policy.state_dict(),
             "returns": self.returns.copy(),
+            "since_switch": self.since_switch.copy(),
             "counters": {
                 "steps_collected": self.steps_collected,
                 "episodes": self.episodes,
@@ -337,6 +382,7 @@ class RolloutWorker:
         self.generator.set_state(torch.from_numpy(np.asarray(state["generator"], np.uint8).copy()))
         self.policy.load_state_dict(state["policy"])
         self.returns = np.asarray(state["returns"], float).copy()
+        self.since_switch = np.asarray(state.get("since_switch", np.full(self.num_envs, -1)), int).copy()
         c = state["counters"]
         self.steps_collected = int(c["steps_collected"])
         self.episodes = int(c["episodes"])

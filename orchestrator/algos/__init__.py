@@ -7,7 +7,7 @@ A method (`conf/algo/<name>.yaml` names its class with `_target_`) says:
 - which stateful components it runs (`components`: learners, a replay buffer),
   built by the shared `Trainer` through the runtime, checkpointed, and reloaded
   from the last checkpoint when Ray restarts one;
-- what its rollout workers run (`make_policy`, `make_recorders`, `sim_config`):
+- what its rollout workers run (`make_policy`, `make_recorders`, `sim_config`, `worker_options`):
   every method uses the one `workers.rollout.RolloutWorker`;
 - its iteration (`step`): sample → add to replay or hand to the learners →
   update → publish weights; it returns the samples it collected and its metrics;
@@ -78,6 +78,11 @@ class Method:
     def make_recorders(cls, cfg: Config, character: Character) -> list[Recorder]:
         """What the rollout workers record beyond states, actions and the policy's extras."""
         return []
+
+    @classmethod
+    def worker_options(cls, cfg: Config) -> dict[str, Any]:
+        """Further keyword arguments of the rollout workers (`workers.rollout.RolloutWorker`)."""
+        return {}
 
     @classmethod
     def sim_config(cls, cfg: Config) -> SimConfig:

@@ -8,9 +8,15 @@ the VAE controller (z from the posterior, or from the prior with probability
 
 One iteration is pipelined: the trajectories of the collect calls issued last
 iteration go from the workers to the replay buffer directly, the next collect
-calls are issued at once (on Ray they run while the learners update), then both
-learners take the updates that the replay ratio makes due, and the VAE's new
-weights are published. Locally the same calls run in order.
+calls are issued at once (on Ray they run while the learners update), then each
+learner takes the updates that its replay ratio makes due (`algo.loop.replay_ratios`),
+and the VAE's new weights are published. Locally the same calls run in order.
+
+The collection is the paper's (§3.4.3–3.4.4): the workers record each state's
+reward of Eq. 20 (its mean is the learning curve, `rollout/reward`); every
+`balance_every` iterations the replay's trajectories update a value per library
+frame (Eq. 18–19, `workers.balancing`) and the workers draw their starts, and the
+starts of clip switches (`switch_rate`), ∝ 1/max(0.01, V).
 """
 
 from __future__ import annotations
@@ -21,6 +27,8 @@ from typing import Any
 from orchestrator.algos import Component, Method
 from orchestrator.components import ReplayActor, VAEActor, WorldModelActor, load_world
 from orchestrator.evaluate import evaluate_controller
+from workers.balancing import FrameValues, TrackingReward
+from workers.learners.vae import state_weight_vector
 from workers.policies import VAEPolicy
 
 
@@ -33,6 +41,9 @@ class ControlVAE(Method):
         self.world = None
         # Replay-ratio credit carried between iterations, and update counts (checkpointed).
         self.counters = {"world_model_credit": 0.0, "vae_credit": 0.0, "world_model_updates": 0, "vae_updates": 0}
+        loop = cfg.algo.loop
+        self.values: FrameValues | None = None  # data balancing's value per library frame, once it starts
+        self.balance = (loop.balance_rate, loop.balance_gamma)
 
     def components(self) -> list[Component]:
         cfg, b, a = self.cfg, self.character.num_bodies, self.character.num_actions
@@ -46,6 +57,15 @@ class ControlVAE(Method):
     def make_policy(cls, cfg, character) -> VAEPolicy:
         return VAEPolicy(character.num_bodies, character.num_actions, cfg.algo.vae, cfg.algo.loop.prior_probability)
 
+    @classmethod
+    def make_recorders(cls, cfg, character) -> list[TrackingReward]:
+        """Each collected state's reward of Eq. 20, with the reconstruction loss's weights W."""
+        return [TrackingReward(state_weight_vector(character.num_bodies, cfg.algo.vae.state_weights).numpy())]
+
+    @classmethod
+    def worker_options(cls, cfg) -> dict[str, float]:
+        return {"switch_rate": cfg.algo.loop.switch_rate, "switch_window": cfg.algo.loop.switch_window}
+
     # The iteration -----------------------------------------------------------------
     def publish(self, t) -> None:
         """World model → VAE learner; VAE → object store once per version."""
@@ -54,17 +74,23 @@ class ControlVAE(Method):
         t.publish(rt.get(rt.call(h["vae"], "get_weights")))
 
     def start(self, t) -> None:
+        if self.values is not None:  # resumed: the workers draw their starts by the restored values
+            t.configure_workers(start_weights=self.values.weights())
         self.publish(t)
         self.pending = t.collect(self.cfg.algo.loop.collect_steps, self.cfg.algo.loop.staleness)
 
-    def updates_due(self, collected: int, size: int, length: int, key: str) -> int:
-        credit = self.counters[key] + self.cfg.algo.loop.replay_ratio * collected / (size * length)
+    def updates_due(self, collected: int, size: int, length: int, learner: str) -> int:
+        loop = self.cfg.algo.loop
+        ratio = loop.replay_ratios.get(learner, loop.replay_ratio)
+        key = f"{learner}_credit"
+        credit = self.counters[key] + ratio * collected / (size * length)
         n = int(credit)
         self.counters[key] = credit - n
         return n
 
     def step(self, t) -> tuple[int, dict[str, float]]:
         cfg, rt, h, c = self.cfg, t.rt, t.handles, self.counters
+        loop = cfg.algo.loop
         t0 = time.perf_counter()
         # Trajectories go from the workers to the replay actor directly; only their summaries come back.
         infos = rt.get([rt.call(h["replay"], "add_trajectory", f) for f in self.pending])
@@ -77,16 +103,17 @@ class ControlVAE(Method):
         for w, info in enumerate(infos):
             t.worker_came_back(w, info["version"])
         t.worker_restarts()
-        self.pending = t.collect(cfg.algo.loop.collect_steps, cfg.algo.loop.staleness)
+        self.pending = t.collect(loop.collect_steps, loop.staleness)
 
         t1 = time.perf_counter()
         metrics: dict[str, float] = {}
-        if replay_size >= cfg.algo.loop.warmup:
+        if replay_size >= loop.warmup:
             wm, vae = cfg.algo.world_model, cfg.algo.vae
-            n_wm = self.updates_due(collected, wm.batch_size, wm.rollout_steps, "world_model_credit")
-            n_vae = self.updates_due(collected, vae.batch_size, vae.rollout_steps, "vae_credit")
+            n_wm = self.updates_due(collected, wm.batch_size, wm.rollout_steps, "world_model")
+            n_vae = self.updates_due(collected, vae.batch_size, vae.rollout_steps, "vae")
             wm_batches = rt.call(h["replay"], "sample_batches", n_wm, wm.batch_size, wm.rollout_steps)
-            vae_batches = rt.call(h["replay"], "sample_batches", n_vae, vae.batch_size, vae.rollout_steps)
+            sample = "sample_start_batches" if loop.vae_starts == "states" else "sample_batches"
+            vae_batches = rt.call(h["replay"], sample, n_vae, vae.batch_size, vae.rollout_steps)
             wm_metrics = rt.call(h["world_model"], "train", wm_batches)
             vae_metrics = rt.call(h["vae"], "train", vae_batches)
             for prefix, m in (("world_model", rt.get(wm_metrics)), ("vae", rt.get(vae_metrics))):
@@ -94,6 +121,8 @@ class ControlVAE(Method):
                 metrics.update({f"{prefix}/{k}": v for k, v in m.items()})
             c["world_model_updates"] += n_wm
             c["vae_updates"] += n_vae
+            if loop.balance_every and (t.state.iteration + 1) % loop.balance_every == 0:
+                metrics.update(self.rebalance(t))
         t_update = time.perf_counter() - t1
 
         t2 = time.perf_counter()
@@ -112,9 +141,32 @@ class ControlVAE(Method):
                 "loop/vae_updates": float(c["vae_updates"]),
                 "rollout/episode_ends": float(ends),
                 "rollout/mean_episode_steps": collected / max(ends, 1),
+                # ControlVAE's learning curve: the mean of exp(-L_rec / 20) over the collected states (Eq. 20).
+                "rollout/reward": sum(i["reward_sum"] for i in infos) / max(collected, 1),
             }
         )
+        for key in ("switches", "switch_falls", "switch_recoveries"):
+            if key in infos[0]:
+                metrics[f"rollout/{key}"] = float(sum(i[key] for i in infos))
         return collected, metrics
+
+    def rebalance(self, t) -> dict[str, float]:
+        """Data balancing: the frames' values from the stored trajectories (Eq. 18–19), new start weights
+        for the workers; the value and start share of each clip as metrics."""
+        if self.world is None:
+            self.world = load_world(self.cfg)
+        library = self.world[1]
+        if self.values is None:
+            self.values = FrameValues(library.total_frames, *self.balance)
+        count, total = t.rt.get(t.rt.call(t.handles["replay"], "frame_returns", self.values.values, self.values.gamma))
+        seen = self.values.update(count, total)
+        t.configure_workers(start_weights=self.values.weights())
+        summary = self.values.clip_summary(library)
+        metrics = {"balance/frames_seen": float(len(seen)) / library.total_frames}
+        for k, name in enumerate(library.names):
+            metrics[f"balance/value/{name}"] = float(summary["value"][k])
+            metrics[f"balance/start_share/{name}"] = float(summary["share"][k])
+        return metrics
 
     def finish(self, t) -> None:
         t.rt.get(self.pending)  # let the last collection finish before saving
@@ -129,7 +181,12 @@ class ControlVAE(Method):
         return {"vae": f"{metrics.get('vae/rec', float('nan')):.3g}"}
 
     def state_dict(self) -> dict[str, Any]:
-        return dict(self.counters)
+        return {**self.counters, "values": None if self.values is None else self.values.state_dict()}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         self.counters = {k: type(v)(state[k]) for k, v in self.counters.items()}
+        if state.get("values") is not None:
+            if self.world is None:
+                self.world = load_world(self.cfg)
+            self.values = FrameValues(self.world[1].total_frames, *self.balance)
+            self.values.load_state_dict(state["values"])

@@ -62,6 +62,13 @@ def test_defaults_are_the_laptop_run():
     assert cfg.algo.ppo is None and cfg.algo.discriminator is None
     paper = validate(composed("scale=paper"))
     assert list(paper.algo.vae.policy_hidden) == [512, 512, 512] and paper.algo.vae.num_experts == 6
+    # ControlVAE's schedule: 2,048 states per epoch, 8 updates of 512 x 8 and of 512 x 24 -> ratios 16 and 48.
+    loop, r = paper.algo.loop, paper.runtime
+    assert r.rollout_workers * r.envs_per_worker * loop.collect_steps == 2048
+    assert dict(loop.replay_ratios) == {"world_model": 16, "vae": 48}
+    assert 8 * 512 * 8 / 2048 == 16 and 8 * 512 * 24 / 2048 == 48
+    assert not loop.end_on_fall and loop.max_episode_steps == 512 and loop.balance_every == 200
+    assert cfg.algo.loop.end_on_fall and cfg.algo.loop.vae_starts == "states"  # the laptop's, by measurement
 
 
 def test_ablation_gp_names_its_loss_and_penalty_placement():

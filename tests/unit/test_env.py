@@ -41,6 +41,10 @@ def test_falls_are_detected(character, walk_run):
     assert fell_at is not None and fell_at < 90
     # Lying on the ground means a low root.
     assert sim.kin_state().xpos[:, 0, 2].max() < 0.6
+    # ControlVAE's collection: a fall is reported but does not end the episode.
+    lying = BatchedSim(character, walk_run, 2, SimConfig(tracking_error_m=0, end_on_fall=False), seed=0)
+    results = [lying.step(np.zeros((2, 28))) for _ in range(fell_at + 1)]
+    assert results[-1].fell.all() and not any(r.done.any() for r in results)
 
 
 def test_tracking_failure_after_one_second(character, walk_run):

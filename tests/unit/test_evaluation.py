@@ -2,18 +2,23 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
 
 from workers.evaluation import (
     fall_start,
+    random_sampling,
     reference_targets,
     relative_position_error,
     time_until_fall,
     tracking_error,
+    tracking_segments,
 )
 from workers.learners.vae import VAEConfig, build_controller
+from workers.motion.library import MotionLibrary
 
 SMALL = VAEConfig(latent_dim=8, encoder_hidden=(32,), policy="mlp", policy_hidden=(64,))
 DT = 1 / 30
@@ -91,9 +96,12 @@ def test_tracking_error_of_the_reference_is_small_and_of_an_untrained_controller
         return pd(sim)
 
     near = tracking_error(None, walk_run, character, clip_seconds=1.0, policy=hold)
-    assert set(near) == {"humanoid3d_walk", "humanoid3d_run", "mean"}
+    assert set(near) == {"humanoid3d_walk", "humanoid3d_run", "mean", "segments"}
     assert near["humanoid3d_walk"] < 0.003 and near["humanoid3d_run"] < 0.003
-    assert near["mean"] == pytest.approx((near["humanoid3d_walk"] + near["humanoid3d_run"]) / 2)
+    # 1-second segments: the walk's 38 frames make two (from frames 0 and 30), the run's 24 one; every
+    # segment of a cyclic clip runs its 30 steps, so the mean over segments weighs the walk twice.
+    assert near["segments"] == 3
+    assert near["mean"] == pytest.approx((2 * near["humanoid3d_walk"] + near["humanoid3d_run"]) / 3)
     # The untrained controller holds a T-pose and falls: tens of centimetres (measured 0.34 and 0.41 m).
     c = controller(character)
     far = tracking_error(c, walk_run, character, clip_seconds=2.0)
@@ -101,3 +109,45 @@ def test_tracking_error_of_the_reference_is_small_and_of_an_untrained_controller
     assert far == tracking_error(c, walk_run, character, clip_seconds=2.0)
     with pytest.raises(ValueError, match="controller or a policy"):
         tracking_error(None, walk_run, character)
+
+
+def test_tracking_segments_divide_every_clip_into_consecutive_pieces(character, walk_run):
+    """Fig. 14's 2-second clips, here of 10 steps: a cyclic clip's segments run their full length (through
+    the next cycle), a one-shot clip's last one ends on its last frame."""
+    walk = walk_run.clips[walk_run.clip_id("humanoid3d_walk")]
+    one_shot = dataclasses.replace(walk, name="walk_once", loop=False)
+    lib = MotionLibrary(character, [walk, one_shot])
+    clips, starts, steps = tracking_segments(lib, seconds=1 / 3, control_hz=30)
+    assert lib.num_frames.tolist() == [38, 38]
+    assert clips.tolist() == [0, 0, 0, 0, 1, 1, 1, 1]
+    assert starts.tolist() == [0, 10, 20, 30, 0, 10, 20, 30]
+    assert steps.tolist() == [10, 10, 10, 10, 10, 10, 10, 7]  # frames 30 -> 37, the last one
+    pd = reference_targets(lib)
+
+    def hold(sim):  # on the reference's next pose before each step (see the test above)
+        ref = lib.state(sim.clip_id, sim.start_frame + sim.steps + 1)
+        sim.set_state(np.arange(sim.num_envs), ref.qpos, np.zeros_like(ref.qvel))
+        return pd(sim)
+
+    out = tracking_error(None, lib, character, clip_seconds=1 / 3, policy=hold)
+    assert out["segments"] == 8
+    assert out["humanoid3d_walk"] < 0.003 and out["walk_once"] < 0.003
+    # Frames 0-37 are tracked alike by both; the cyclic clip's last segment goes on to frames 38-39 (the next
+    # cycle's 0-1), so the two means differ only by those two steps.
+    assert out["humanoid3d_walk"] == pytest.approx(out["walk_once"], abs=5e-4)
+    assert out["mean"] == pytest.approx((40 * out["humanoid3d_walk"] + 37 * out["walk_once"]) / 77)
+
+
+def test_random_sampling_starts_anywhere_and_reports_falls_and_distance(character, walk_run):
+    c = controller(character)
+    out = random_sampling(c, character, walk_run, num_rollouts=6, steps=40, seed=3)
+    roots = out["roots"]
+    assert roots.shape == (6, 41, 2) and np.allclose(roots[:, 0], 0.0)
+    assert out["fell"] == 1.0  # the untrained T-pose topples within 40 steps
+    end = np.linalg.norm(roots[:, -1], axis=-1).mean()
+    path = np.linalg.norm(np.diff(roots, axis=1), axis=-1).sum(1).mean()
+    assert out["distance"] == pytest.approx(end) and out["path"] == pytest.approx(path)
+    assert out["distance"] <= out["path"] + 1e-12
+    again = random_sampling(c, character, walk_run, num_rollouts=6, steps=40, seed=3)
+    np.testing.assert_array_equal(again["roots"], roots)
+    assert c.training

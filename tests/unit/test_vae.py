@@ -238,3 +238,20 @@ def test_the_prior_switches_change_what_is_sampled(walk_run):
         absolute = learned.act(s, learned.task_latent(s, zero, prior_action=False))
     assert torch.allclose(residual, at_mean) and not torch.allclose(residual, absolute)
     assert torch.equal(plain.task_latent(s, zero, True), zero)  # N(0, I): the residual changes nothing
+
+
+def test_single_state_starts_feed_the_normaliser_from_their_own_states(character):
+    """A batch of single start states [N, 1] updates the state normaliser with `norm_states` instead."""
+    from workers.models.world_model import WorldModel
+
+    b, a = character.num_bodies, character.num_actions
+    config = VAEConfig(latent_dim=4, encoder_hidden=(16,), policy="mlp", policy_hidden=(16,), batch_size=3,
+                       rollout_steps=2)  # fmt: skip
+    learner = VAELearner(b, a, config, world_model=WorldModel(b, a, (16,), "elu", 1 / 30, "semi_implicit"))
+    rng = np.random.default_rng(0)
+    states = rng.normal(size=(3, 1, b, 13)).astype(np.float32)
+    states[..., 3:7] = [1, 0, 0, 0]
+    reference = np.repeat(states, 3, axis=1)
+    norm = np.repeat(states[:, 0], 7, axis=0)  # 21 states
+    learner.update(VAEBatch(states, reference, norm_states=norm))
+    assert int(learner.vae.state_norm.count) == 21

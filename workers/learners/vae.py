@@ -105,6 +105,8 @@ class VAEBatch:
     states: torch.Tensor | np.ndarray
     reference: torch.Tensor | np.ndarray | None = None
     actions: torch.Tensor | np.ndarray | None = None
+    # [k, B, 13] states that feed the state normaliser instead of `states` (single-state starts).
+    norm_states: torch.Tensor | np.ndarray | None = None
 
 
 def state_weight_vector(num_bodies: int, weights: dict[str, float]) -> torch.Tensor:
@@ -169,7 +171,8 @@ class VAELearner(Learner):
         return self.config.beta(self.version)
 
     def before_update(self, batch: VAEBatch) -> None:
-        self.vae.state_norm.update(body_state.features(as_tensor(batch.states)))
+        states = batch.states if batch.norm_states is None else batch.norm_states
+        self.vae.state_norm.update(body_state.features(as_tensor(states)))
 
     def loss(self, batch: VAEBatch) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         objective = self.config.objective

@@ -50,8 +50,8 @@ checked on its contact list.
 
 Reset is reference state initialisation from the motion library. Termination:
 `fell` (a body other than the allowed ones, the feet by default, touches the
-ground), `tracking_failed` (head further than `tracking_error_m` from the
-reference's for `tracking_error_s`), `clip_ended` (a one-shot clip ran out) and
+ground; reported but no end with `end_on_fall=False`), `tracking_failed` (head
+further than `tracking_error_m` from the reference's for `tracking_error_s`), `clip_ended` (a one-shot clip ran out) and
 `timeout` (`max_episode_steps`). The caller resets finished environments.
 """
 
@@ -84,6 +84,8 @@ class SimConfig:
     control_hz: float = 30.0
     # Bodies allowed to touch the ground; any other contact is a fall. Empty: never fall on contact.
     allowed_contacts: tuple[str, ...] = ("right_ankle", "left_ankle")
+    # Whether a fall ends the episode; false (ControlVAE's collection) still reports it in StepResult.fell.
+    end_on_fall: bool = True
     # Head error (metres) that, held for tracking_error_s seconds, ends an episode. 0 disables.
     tracking_error_m: float = 0.5
     tracking_error_s: float = 1.0
@@ -114,10 +116,13 @@ class StepResult:
     tracking_failed: np.ndarray  # [N] bool
     clip_ended: np.ndarray  # [N] bool
     timeout: np.ndarray  # [N] bool
+    end_on_fall: bool = True  # whether `fell` ends the episode
     done: np.ndarray = field(init=False)
 
     def __post_init__(self) -> None:
-        self.done = self.fell | self.tracking_failed | self.clip_ended | self.timeout
+        self.done = self.tracking_failed | self.clip_ended | self.timeout
+        if self.end_on_fall:
+            self.done = self.done | self.fell
 
 
 class EnvState:
@@ -278,7 +283,17 @@ class BatchedSim:
             tracking_failed=tracking_failed,
             clip_ended=clip_ended,
             timeout=timeout,
+            end_on_fall=self.config.end_on_fall,
         )
+
+    def switch_reference(self, env_ids: np.ndarray, clip_ids: np.ndarray, frames: np.ndarray) -> None:
+        """Give environments a new reference (clip, frame) without touching their bodies (ControlVAE's
+        trajectory sampler, §3.4.4): the episode goes on, its step count too, and the head-error count
+        starts over. `start_frame` becomes the offset that puts `start_frame + steps` on `frames`."""
+        env_ids = np.asarray(env_ids, dtype=int)
+        self.clip_id[env_ids] = clip_ids
+        self.start_frame[env_ids] = np.asarray(frames, int) - self.steps[env_ids]
+        self._bad_head_steps[env_ids] = 0
 
     # State access ----------------------------------------------------------
     def kin_state(self) -> KinState:
