@@ -57,7 +57,13 @@ def main(argv: list[str] | None = None) -> int:
     peer.add_argument("--ours", default="ray", choices=("local", "ray"), help="our runtime")
     peer.add_argument("--workers", type=int, default=2, help="our rollout workers (the envs are split among them)")
     peer.add_argument("--overlap", action="store_true", help="ours: collect the next batch while PPO trains")
-    for p in (sim, learners, pipeline, rollout, peer):
+    learning = sub.add_parser("learning", help="the default run's seconds and samples until it tracks and stays up")
+    learning.add_argument("--minutes", type=float, default=30.0, help="training wall time (evaluations not counted)")
+    learning.add_argument("--eval-every", type=float, default=120.0, help="training seconds between evaluations")
+    learning.add_argument("--fall-rollouts", type=int, default=32, help="time-until-fall rollouts per evaluation")
+    learning.add_argument("--figure", type=Path, help="where the figure goes (default: outputs/bench/learning-*.png)")
+    learning.add_argument("overrides", nargs="*", help="Hydra overrides of the default run, e.g. seed=1")
+    for p in (sim, learners, pipeline, rollout, peer, learning):
         p.add_argument("--json", action="store_true", help="print JSON instead of the table")
         p.add_argument("--out", type=Path, help="also write the JSON to this file")
     args = parser.parse_args(argv)
@@ -151,6 +157,20 @@ def main(argv: list[str] | None = None) -> int:
             print(e, file=sys.stderr)
             return 2
         text = bench_peer.format_table(result)
+    elif args.what == "learning":
+        import time
+
+        from orchestrator.bench import learning as bench_learning
+
+        if args.minutes <= 0 or args.eval_every <= 0 or args.fall_rollouts < 1:
+            parser.error("--minutes and --eval-every must be positive, --fall-rollouts at least 1")
+        result = bench_learning.run(
+            args.minutes, args.eval_every, args.fall_rollouts, args.overrides, lambda m: print(m, file=sys.stderr)
+        )
+        figure = args.figure or Path("outputs/bench") / f"learning-{time.strftime('%Y-%m-%d_%H-%M-%S')}.png"
+        bench_learning.plot(result, figure)
+        result["figure"] = str(figure)
+        text = bench_learning.format_table(result)
     else:  # pragma: no cover - argparse refuses unknown commands
         parser.error(f"unknown benchmark {args.what}")
 
