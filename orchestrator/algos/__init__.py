@@ -117,6 +117,38 @@ class Method:
         pass
 
 
+class UpdateSchedule:
+    """A learner's updates by its replay ratio: `ratio` learner samples (transitions in rollouts) per collected
+    sample, an update taking `batch · length` of them; the fraction of an update not yet due carries over."""
+
+    def __init__(self, ratio: float, batch: int, length: int):
+        self.per_sample = ratio / (batch * length)
+        self.credit = 0.0
+        self.updates = 0
+
+    @classmethod
+    def of(cls, cfg: Config, learner: str) -> UpdateSchedule:
+        """The schedule of `algo.<learner>` (its batch_size and rollout_steps) at its replay ratio:
+        `algo.loop.replay_ratios[learner]`, else `algo.loop.replay_ratio`."""
+        loop, section = cfg.algo.loop, getattr(cfg.algo, learner)
+        return cls(loop.replay_ratios.get(learner, loop.replay_ratio), section.batch_size, section.rollout_steps)
+
+    def due(self, collected: int) -> int:
+        """The updates the `collected` new samples make due (counted in `updates`)."""
+        credit = self.credit + self.per_sample * collected
+        n = int(credit)
+        self.credit = credit - n
+        self.updates += n
+        return n
+
+    def state_dict(self, key: str) -> dict[str, float | int]:
+        return {f"{key}_credit": self.credit, f"{key}_updates": self.updates}
+
+    def load_state_dict(self, state: dict[str, Any], key: str) -> None:
+        self.credit = float(state[f"{key}_credit"])
+        self.updates = int(state[f"{key}_updates"])
+
+
 def method_class(target: str) -> type[Method]:
     """The method class named by `algo._target_`."""
     module, _, name = target.rpartition(".")

@@ -24,7 +24,7 @@ from __future__ import annotations
 import time
 from typing import Any
 
-from orchestrator.algos import Component, Method
+from orchestrator.algos import Component, Method, UpdateSchedule
 from orchestrator.components import ReplayActor, VAEActor, WorldModelActor, load_world
 from orchestrator.evaluate import evaluate_controller
 from workers.balancing import FrameValues, TrackingReward
@@ -39,9 +39,9 @@ class ControlVAE(Method):
         super().__init__(cfg, character, upstream)
         self.pending: list[Any] = []
         self.world = None
-        # Replay-ratio credit carried between iterations, and update counts (checkpointed).
-        self.counters = {"world_model_credit": 0.0, "vae_credit": 0.0, "world_model_updates": 0, "vae_updates": 0}
         loop = cfg.algo.loop
+        # Each learner's updates by its own replay ratio (the credit between iterations is checkpointed).
+        self.schedules = {key: UpdateSchedule.of(cfg, key) for key in ("world_model", "vae")}
         self.values: FrameValues | None = None  # data balancing's value per library frame, once it starts
         self.balance = (loop.balance_rate, loop.balance_gamma)
 
@@ -79,17 +79,8 @@ class ControlVAE(Method):
         self.publish(t)
         self.pending = t.collect(self.cfg.algo.loop.collect_steps, self.cfg.algo.loop.staleness)
 
-    def updates_due(self, collected: int, size: int, length: int, learner: str) -> int:
-        loop = self.cfg.algo.loop
-        ratio = loop.replay_ratios.get(learner, loop.replay_ratio)
-        key = f"{learner}_credit"
-        credit = self.counters[key] + ratio * collected / (size * length)
-        n = int(credit)
-        self.counters[key] = credit - n
-        return n
-
     def step(self, t) -> tuple[int, dict[str, float]]:
-        cfg, rt, h, c = self.cfg, t.rt, t.handles, self.counters
+        cfg, rt, h, schedules = self.cfg, t.rt, t.handles, self.schedules
         loop = cfg.algo.loop
         t0 = time.perf_counter()
         # Trajectories go from the workers to the replay actor directly; only their summaries come back.
@@ -109,8 +100,7 @@ class ControlVAE(Method):
         metrics: dict[str, float] = {}
         if replay_size >= loop.warmup:
             wm, vae = cfg.algo.world_model, cfg.algo.vae
-            n_wm = self.updates_due(collected, wm.batch_size, wm.rollout_steps, "world_model")
-            n_vae = self.updates_due(collected, vae.batch_size, vae.rollout_steps, "vae")
+            n_wm, n_vae = schedules["world_model"].due(collected), schedules["vae"].due(collected)
             wm_batches = rt.call(h["replay"], "sample_batches", n_wm, wm.batch_size, wm.rollout_steps)
             sample = "sample_start_batches" if loop.vae_starts == "states" else "sample_batches"
             vae_batches = rt.call(h["replay"], sample, n_vae, vae.batch_size, vae.rollout_steps)
@@ -119,8 +109,6 @@ class ControlVAE(Method):
             for prefix, m in (("world_model", rt.get(wm_metrics)), ("vae", rt.get(vae_metrics))):
                 t.check_alive(prefix, m.pop("incarnation"))
                 metrics.update({f"{prefix}/{k}": v for k, v in m.items()})
-            c["world_model_updates"] += n_wm
-            c["vae_updates"] += n_vae
             if loop.balance_every and (t.state.iteration + 1) % loop.balance_every == 0:
                 metrics.update(self.rebalance(t))
         t_update = time.perf_counter() - t1
@@ -137,8 +125,8 @@ class ControlVAE(Method):
                 "throughput/update_s": t_update,
                 "throughput/publish_s": t_publish,
                 "rollout/max_staleness": float(max(staleness)),
-                "loop/world_model_updates": float(c["world_model_updates"]),
-                "loop/vae_updates": float(c["vae_updates"]),
+                "loop/world_model_updates": float(schedules["world_model"].updates),
+                "loop/vae_updates": float(schedules["vae"].updates),
                 "rollout/episode_ends": float(ends),
                 "rollout/mean_episode_steps": collected / max(ends, 1),
                 # ControlVAE's learning curve: the mean of exp(-L_rec / 20) over the collected states (Eq. 20).
@@ -181,10 +169,14 @@ class ControlVAE(Method):
         return {"vae": f"{metrics.get('vae/rec', float('nan')):.3g}"}
 
     def state_dict(self) -> dict[str, Any]:
-        return {**self.counters, "values": None if self.values is None else self.values.state_dict()}
+        state: dict[str, Any] = {"values": None if self.values is None else self.values.state_dict()}
+        for key, schedule in self.schedules.items():
+            state.update(schedule.state_dict(key))
+        return state
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
-        self.counters = {k: type(v)(state[k]) for k, v in self.counters.items()}
+        for key, schedule in self.schedules.items():
+            schedule.load_state_dict(state, key)
         if state.get("values") is not None:
             if self.world is None:
                 self.world = load_world(self.cfg)

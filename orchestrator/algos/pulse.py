@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from orchestrator.algos import Component, Method
+from orchestrator.algos import Component, Method, UpdateSchedule
 from orchestrator.algos.demos import expert_weights
 from orchestrator.components import ReplayActor, load_world, sim_config
 from orchestrator.components_distill import PulseActor
@@ -44,7 +44,7 @@ class Pulse(Method):
         self.pending: list[Any] = []
         self.world = None
         self.teacher = None
-        self.counters = {"credit": 0.0, "updates": 0}
+        self.schedule = UpdateSchedule.of(cfg, "vae")
 
     def components(self) -> list[Component]:
         b, a = self.character.num_bodies, self.character.num_actions
@@ -78,19 +78,16 @@ class Pulse(Method):
         self.pending = t.collect(loop.collect_steps, loop.staleness)
         metrics: dict[str, float] = {}
         if infos[-1]["size"] >= loop.warmup:
-            credit = self.counters["credit"] + loop.replay_ratio * collected / (vae.batch_size * vae.rollout_steps)
-            n = int(credit)
-            self.counters["credit"] = credit - n
+            n = self.schedule.due(collected)
             batches = rt.call(h["replay"], "sample_batches", n, vae.batch_size, vae.rollout_steps)
             m = rt.get(rt.call(h["vae"], "train", batches))
             t.check_alive("vae", m.pop("incarnation"))
             metrics.update({f"vae/{k}": float(v) for k, v in m.items()})
-            self.counters["updates"] += n
         self.publish(t)
         ends = sum(i["episode_ends"] for i in infos)
         metrics.update(
             {
-                "loop/vae_updates": float(self.counters["updates"]),
+                "loop/vae_updates": float(self.schedule.updates),
                 "rollout/episode_ends": float(ends),
                 "rollout/mean_episode_steps": collected / max(ends, 1),
                 "throughput/step_s": time.perf_counter() - t0,
@@ -141,7 +138,9 @@ class Pulse(Method):
         return {"distill": f"{metrics.get('vae/distill', float('nan')):.3g}"}
 
     def state_dict(self) -> dict[str, Any]:
-        return dict(self.counters)
+        return self.schedule.state_dict("vae")
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
-        self.counters = {"credit": float(state["credit"]), "updates": int(state["updates"])}
+        if "credit" in state:  # a checkpoint written before the schedules had their learner's name
+            state = {"vae_credit": state["credit"], "vae_updates": state["updates"]}
+        self.schedule.load_state_dict(state, "vae")
