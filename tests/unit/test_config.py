@@ -68,7 +68,9 @@ def test_defaults_are_the_laptop_run():
     assert dict(loop.replay_ratios) == {"world_model": 16, "vae": 48}
     assert 8 * 512 * 8 / 2048 == 16 and 8 * 512 * 24 / 2048 == 48
     assert not loop.end_on_fall and loop.max_episode_steps == 512 and loop.balance_every == 200
-    assert cfg.algo.loop.end_on_fall and cfg.algo.loop.vae_starts == "states"  # the laptop's, by measurement
+    assert paper.algo.loop.vae_starts == "states" and paper.algo.loop.switch_rate > 0
+    # The laptop's, by measurement (conf/algo_scale/controlvae_laptop.yaml).
+    assert cfg.algo.loop.end_on_fall and cfg.algo.loop.vae_starts == "windows" and cfg.algo.loop.balance_every == 0
 
 
 def test_ablation_gp_names_its_loss_and_penalty_placement():
