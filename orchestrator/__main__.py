@@ -13,13 +13,15 @@ from orchestrator.schema import ConfigError, register, validate
 register()
 
 
-def _run_name() -> str | None:
+def _run_name(cfg) -> str:
+    """What the run is: its method and seed, then the overrides it was given (a sweep point's include what
+    varies), e.g. `controlvae seed=0` or `physicsvae seed=1 algo.vae.alpha=0.01`."""
     try:
         overrides = HydraConfig.get().overrides.task
     except ValueError:
-        return None
-    shown = [o for o in overrides if not o.startswith(("+experiment", "hydra.", "run_dir", "progress"))]
-    return " ".join(shown) or None
+        overrides = []
+    hidden = ("+experiment", "hydra.", "run_dir", "progress", "seed=", "algo=")
+    return " ".join([cfg.algo.name, f"seed={cfg.seed}", *(o for o in overrides if not o.startswith(hidden))])
 
 
 def _is_multirun() -> bool:
@@ -36,7 +38,7 @@ def main(dcfg: DictConfig) -> float | None:
         print(f"config error: {e}", file=sys.stderr)
         sys.exit(2)
     if cfg.tracking.run_name is None:
-        cfg.tracking.run_name = _run_name()
+        cfg.tracking.run_name = _run_name(cfg)
     from orchestrator.build import run
     from orchestrator.sweep import parent_of
 

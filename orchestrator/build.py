@@ -77,6 +77,21 @@ def where_to_look(cfg: Config, tracker: Tracker, runtime: Runtime) -> str:
     return "\n".join(lines)
 
 
+def hydra_record() -> list[Path]:
+    """Hydra's own record of a command-line run: the composed config, the overrides as typed and Hydra's
+    settings (`<hydra output dir>/.hydra/*.yaml`); none outside a Hydra app."""
+    from hydra.core.hydra_config import HydraConfig
+
+    try:
+        hc = HydraConfig.get()
+    except ValueError:
+        return []
+    if not hc.output_subdir:
+        return []
+    where = Path(hc.runtime.output_dir) / hc.output_subdir
+    return [where / name for name in ("config.yaml", "overrides.yaml", "hydra.yaml") if (where / name).exists()]
+
+
 def store_of(cfg: Config) -> str:
     """The tracking store this run writes to (where its upstream stages are looked for and kept)."""
     from orchestrator.tracking.mlflow import embedded_uri
@@ -114,6 +129,8 @@ def run(
         resolved: dict[str, Any] = asdict(cfg)
         tracker.log_params(flatten(resolved))
         tracker.log_dict(resolved, "config.json")
+        for path in hydra_record():
+            tracker.log_artifact(str(path), "hydra")
     run_file.write_text(json.dumps({"run_id": tracker.run_id}))
     runtime = build_runtime(cfg)
     status = "FAILED"

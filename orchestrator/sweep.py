@@ -231,11 +231,11 @@ class SweepCallback(Callback):
 def ensure_experiment(store: str, name: str) -> None:
     from mlflow.tracking import MlflowClient
 
-    from orchestrator.tracking.mlflow import store_artifacts
+    from orchestrator.tracking.mlflow import EXPERIMENT_TAGS, store_artifacts
 
     client = MlflowClient(store)
     if client.get_experiment_by_name(name) is None:
-        client.create_experiment(name, artifact_location=store_artifacts(store))
+        client.create_experiment(name, artifact_location=store_artifacts(store), tags=EXPERIMENT_TAGS)
 
 
 def child_results(children: list[dict[str, Any]], compare_by: str, metrics: list[str]) -> list[dict[str, Any]]:

@@ -257,7 +257,9 @@ class Sender:
         experiment = client.get_experiment_by_name(name)
         if experiment is None:
             try:
-                experiment_id = client.create_experiment(name, artifact_location=record["artifact_location"])
+                experiment_id = client.create_experiment(
+                    name, artifact_location=record["artifact_location"], tags=EXPERIMENT_TAGS
+                )
             except MlflowException as err:  # created meanwhile by a parallel job
                 if err.error_code != "RESOURCE_ALREADY_EXISTS":
                     raise
@@ -267,9 +269,17 @@ class Sender:
             if experiment.lifecycle_stage == "deleted":
                 log.warning("tracking: experiment %r was deleted; restoring it", name)
                 client.restore_experiment(experiment_id)
+            for key, value in EXPERIMENT_TAGS.items():
+                if key not in experiment.tags:
+                    client.set_experiment_tag(experiment_id, key, value)
         tags, run_name = record["tags"], record["run_name"]
         run = client.create_run(experiment_id, start_time=record["start_time"], tags=tags, run_name=run_name)
         self.ids[record["run"]] = run.info.run_id
+
+
+# Marks an experiment as model training, so that the MLflow UI opens it on its training view (runs,
+# metrics, charts) rather than the GenAI one.
+EXPERIMENT_TAGS = {"mlflow.experimentKind": "custom_model_development"}
 
 
 class MlflowTracker(Tracker):

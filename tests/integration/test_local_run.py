@@ -29,6 +29,9 @@ def test_smoke_run_leaves_a_complete_mlflow_run(smoke):
     assert r.info.status == "FINISHED"
     assert r.data.params["algo.vae.prior"] == "conditional" and r.data.params["seed"] == "0"
     assert r.data.tags["preset"] == "default" and r.data.tags["algo"] == "controlvae"
+    # The MLflow UI opens the experiment on its model-training view.
+    assert client.get_experiment(r.info.experiment_id).tags["mlflow.experimentKind"] == "custom_model_development"
+    assert {"eval/random_sampling_fell", "eval/random_sampling_distance", "rollout/reward"} <= set(r.data.metrics)
     keys = set(r.data.metrics)
     assert {"eval/time_until_fall_mean", "eval/tracking_error_mean", "throughput/samples_per_s"} <= keys
     assert any(k.startswith("world_model/") for k in keys) and any(k.startswith("vae/") for k in keys)
