@@ -151,3 +151,21 @@ def dump_text(obj: Any, artifact_file: str) -> str:
 def _parent(artifact_file: str) -> str | None:
     parent = Path(artifact_file).parent.as_posix()
     return None if parent in ("", ".") else parent
+
+
+# Marks an experiment as model training, so that the MLflow UI opens it on its training view (runs,
+# metrics, charts) rather than the GenAI one.
+EXPERIMENT_TAGS = {"mlflow.experimentKind": "custom_model_development"}
+
+
+def store_artifacts(uri: str) -> str | None:
+    """Where a new experiment in a SQLite store keeps its artifacts: beside the database file (MLflow's own
+    default, ./mlruns under the working directory, would scatter them); None (the server decides) otherwise."""
+    if not uri.startswith("sqlite:///"):
+        return None
+    return (Path(uri.removeprefix("sqlite:///")).parent / "mlartifacts").resolve().as_uri()
+
+
+def embedded_uri(run_dir: str | Path) -> str:
+    """The tracking URI of the embedded store of a run directory."""
+    return f"sqlite:///{Path(run_dir).resolve() / 'mlflow.db'}"

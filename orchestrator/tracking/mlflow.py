@@ -54,7 +54,14 @@ from mlflow.entities import Metric, Param, RunTag  # noqa: E402 - after the envi
 from mlflow.exceptions import MlflowException  # noqa: E402
 from mlflow.tracking import MlflowClient  # noqa: E402
 
-from orchestrator.tracking.base import Tracker, dump_text, truncate  # noqa: E402
+from orchestrator.tracking.base import (  # noqa: E402 - stores' URIs live in base, re-exported here
+    EXPERIMENT_TAGS,
+    Tracker,
+    dump_text,
+    embedded_uri,
+    store_artifacts,
+    truncate,
+)
 
 log = logging.getLogger(__name__)
 
@@ -277,11 +284,6 @@ class Sender:
         self.ids[record["run"]] = run.info.run_id
 
 
-# Marks an experiment as model training, so that the MLflow UI opens it on its training view (runs,
-# metrics, charts) rather than the GenAI one.
-EXPERIMENT_TAGS = {"mlflow.experimentKind": "custom_model_development"}
-
-
 class MlflowTracker(Tracker):
     """A `Tracker` writing to MLflow through `MlflowClient`, spooling to disk while the backend is away.
 
@@ -448,19 +450,6 @@ class MlflowTracker(Tracker):
         """`owned`: a file the tracker wrote itself, deleted once uploaded."""
         record = {"op": "artifact", "run": self._key, "path": str(path), "artifact_path": artifact_path}
         self._sender.submit({**record, "owned": owned})
-
-
-def store_artifacts(uri: str) -> str | None:
-    """Where a new experiment in a SQLite store keeps its artifacts: beside the database file (MLflow's own
-    default, ./mlruns under the working directory, would scatter them); None (the server decides) otherwise."""
-    if not uri.startswith("sqlite:///"):
-        return None
-    return (Path(uri.removeprefix("sqlite:///")).parent / "mlartifacts").resolve().as_uri()
-
-
-def embedded_uri(run_dir: str | Path) -> str:
-    """The tracking URI of the embedded store of a run directory."""
-    return f"sqlite:///{Path(run_dir).resolve() / 'mlflow.db'}"
 
 
 def replay_spool(run_dir: str | Path, uri: str | None) -> int:
