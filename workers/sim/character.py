@@ -39,14 +39,14 @@ def mirror_name(name: str) -> str:
     return name
 
 
-def build_model(
+def build_spec(
     xml_path: str | Path = HUMANOID_XML,
     sim_hz: float = 480.0,
     self_collision: bool = False,
     fixed_root: bool = False,
     root_height: float | None = None,
-) -> mujoco.MjModel:
-    """Compile the character.
+) -> mujoco.MjSpec:
+    """The character's model before compilation (what `build_model` compiles).
 
     Args:
       xml_path: the MJCF file.
@@ -69,7 +69,12 @@ def build_model(
         for geom in spec.geoms:
             if geom.name != "floor":
                 geom.conaffinity = 1
-    return spec.compile()
+    return spec
+
+
+def build_model(xml_path: str | Path = HUMANOID_XML, **build_kwargs) -> mujoco.MjModel:
+    """Compile the character; the arguments are `build_spec`'s."""
+    return build_spec(xml_path, **build_kwargs).compile()
 
 
 @dataclass
@@ -97,6 +102,8 @@ class Character:
     floor_geom: int
     xml_hash: str
     root_dofs: int = 6  # 0 when the root is welded (fixed_root=True)
+    # build_spec's arguments that made `model`, so that variants of it can be built (`spec()`).
+    build_args: dict = field(default_factory=dict)
     ball_qpos: np.ndarray = field(init=False)  # [n_ball, 4] qpos indices of ball quats
     hinge_qpos: np.ndarray = field(init=False)  # [n_hinge] qpos index of each hinge
     ball_act: np.ndarray = field(init=False)  # [n_ball, 3] action indices
@@ -146,7 +153,12 @@ class Character:
             floor_geom=model.geom("floor").id,
             xml_hash=hashlib.sha1(Path(xml_path).read_bytes()).hexdigest()[:12],
             root_dofs=root_dofs,
+            build_args={"xml_path": str(xml_path), **build_kwargs},
         )
+
+    def spec(self) -> mujoco.MjSpec:
+        """A fresh uncompiled copy of the character's model, for variants of it (rough terrain)."""
+        return build_spec(**self.build_args)
 
     # Sizes -------------------------------------------------------------------
     @property

@@ -46,9 +46,13 @@ contact list, so the outcome is exactly that of checking every contact list
 (random-policy runs: 2-8% more environments copied out than falls found).
 When a fall geom could touch anything but the floor (self-collision, explicit
 contact pairs, a floor that is not a plane), every environment with contacts is
-checked on its contact list.
+checked on its contact list. That is the test on rough terrain, whose floor is a
+height field (`workers.sim.terrain`); the ground there is the field and the
+plane beyond it, both allowed like the floor.
 
-Reset is reference state initialisation from the motion library. Termination:
+Reset is reference state initialisation from the motion library; on rough
+terrain each reset character is raised just clear of the bumps under it
+(`terrain.reset_lift`). Termination:
 `fell` (a body other than the allowed ones, the feet by default, touches the
 ground; reported but no end with `end_on_fall=False`), `tracking_failed` (head
 further than `tracking_error_m` from the reference's for `tracking_error_s`), `clip_ended` (a one-shot clip ran out) and
@@ -66,6 +70,7 @@ from mujoco import batch as mj_batch
 from workers.motion.library import MotionLibrary
 from workers.sim.character import Character
 from workers.sim.features import state_features
+from workers.sim.terrain import TerrainConfig, ground_geoms, reset_lift, terrain_model
 from workers.types import KinState
 
 # Slack (metres) of the floor-distance test that rules out fall contacts; only
@@ -94,6 +99,8 @@ class SimConfig:
     # Threads that step the environments (the caller's included). 1 by default: rollout workers
     # share the machine's cores, and results are bit-identical at any thread count.
     threads: int = 1
+    # The ground: flat (the character file's floor) or a rough height field (`workers.sim.terrain`).
+    terrain: TerrainConfig = field(default_factory=TerrainConfig)
 
     @property
     def substeps(self) -> int:
@@ -165,7 +172,11 @@ class BatchedSim:
         if self.config.threads < 1:
             raise ValueError(f"threads must be at least 1, got {self.config.threads}")
         self.substeps = self.config.substeps
-        self.model = character.model
+        self._rough = self.config.terrain.kind == "rough"
+        if self._rough and character.root_dofs == 0:
+            raise ValueError("rough terrain needs a character with a free root (fixed_root=False)")
+        # Rough: the character's model with the height field, compiled anew (Character.model is untouched).
+        self.model = terrain_model(character.spec(), self.config.terrain) if self._rough else character.model
         self.model.opt.timestep = 1.0 / self.config.sim_hz
         lib_dt = float(np.mean(library.dt))
         if abs(lib_dt * self.config.control_hz - 1.0) > 0.02:
@@ -193,7 +204,7 @@ class BatchedSim:
         self.start_frame = np.zeros(num_envs, int)
         self.steps = np.zeros(num_envs, int)
         self._bad_head_steps = np.zeros(num_envs, int)
-        allowed = [self.model.geom(n).id for n in self.config.allowed_contacts] + [character.floor_geom]
+        allowed = [self.model.geom(n).id for n in self.config.allowed_contacts] + ground_geoms(self.model)
         self._fall_geom = np.ones(self.model.ngeom, bool)  # lookup: does touching this geom end the episode
         self._fall_geom[allowed] = False
         self._fall_on_contact = len(self.config.allowed_contacts) > 0
@@ -229,11 +240,18 @@ class BatchedSim:
         if clip_ids is None or frames is None:
             clip_ids, frames = self.library.sample_starts(len(env_ids), self.rng)
         ref = self.library.state(clip_ids, frames)
-        self.set_state(env_ids, ref.qpos, ref.qvel)
+        qpos = ref.qpos
+        if self._rough:
+            # The reference was recorded on flat ground: raise each character just clear of the bumps.
+            qpos = qpos.copy()
+            qpos[:, 2] += reset_lift(self.config.terrain, self.model, ref.xpos, ref.xquat)
+        self.set_state(env_ids, qpos, ref.qvel)
         self.clip_id[env_ids] = clip_ids
         self.start_frame[env_ids] = frames
         self.steps[env_ids] = 0
         self._bad_head_steps[env_ids] = 0
+        if self._rough:  # raised: the precomputed s has the reference's heights
+            return state_features(self.kin_state()[env_ids])
         # The environments now hold exactly the reference state, whose s is precomputed.
         return self.library.features(clip_ids, frames)
 
