@@ -255,3 +255,22 @@ def test_single_state_starts_feed_the_normaliser_from_their_own_states(character
     norm = np.repeat(states[:, 0], 7, axis=0)  # 21 states
     learner.update(VAEBatch(states, reference, norm_states=norm))
     assert int(learner.vae.state_norm.count) == 21
+
+
+def test_vae_nc_is_controlvae_with_a_unit_posterior():
+    """ControlVAE §5.6's VAE-NC: prior N(0, I), posterior N(μ_q, I); only the prior type differs from ControlVAE."""
+    from workers.learners.vae import VAEConfig, build_controller
+
+    nc = VAEConfig(prior="standard_normal", latent_dim=3, encoder_hidden=(8,), policy="mlp", policy_hidden=(8,))
+    assert nc.posterior_std == 1.0
+    assert VAEConfig(objective="pulse", prior="standard_normal").posterior_std is None  # PULSE's no-prior row learns it
+    torch.manual_seed(0)
+    vae = build_controller(2, 4, nc)
+    s, s_next = torch.randn(5, vae.state_norm.mean.shape[0]), torch.randn(5, vae.state_norm.mean.shape[0])
+    q, p = vae.encode(s, s_next)
+    assert torch.equal(q.log_std, torch.zeros(5, 3)) and torch.equal(p.log_std, torch.zeros(5, 3))
+    assert torch.equal(p.mean, torch.zeros(5, 3))
+    z = torch.stack([p.rsample(torch.Generator().manual_seed(i)) for i in range(400)])
+    assert abs(float(z.mean())) < 0.05 and abs(float(z.std()) - 1.0) < 0.05  # sampling the prior is N(0, I)
+    with pytest.raises(ValueError, match="posterior_std"):
+        VAEConfig(posterior_std=0.0)

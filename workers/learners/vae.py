@@ -48,7 +48,8 @@ class VAEConfig:
     activation: str = "elu"
     # σ_p, the fixed standard deviation of the conditional prior and its posterior (ControlVAE 0.3).
     sigma_p: float = 0.3
-    # A fixed posterior standard deviation for the other priors; None learns it (1.0 is ControlVAE's VAE-NC).
+    # A fixed posterior standard deviation for the other priors; None learns it, except under the controlvae
+    # objective with the standard normal prior, which is ControlVAE's VAE-NC (§5.6): posterior N(μ_q, I), so 1.0.
     posterior_std: float | None = None
     # Clamp of learned log-stds (PULSE clamps the prior's).
     log_std_min: float = -5.0
@@ -88,6 +89,10 @@ class VAEConfig:
                 f"vae.prior: the physicsvae objective has its KL to N(0, I) (PhysicsVAE Eq. 1), so the prior "
                 f"must be standard_normal, got {self.prior!r}"
             )
+        if self.objective == "controlvae" and self.prior == "standard_normal" and self.posterior_std is None:
+            self.posterior_std = 1.0  # VAE-NC exactly: prior type alone varies, not the posterior's noise
+        if self.posterior_std is not None and self.posterior_std <= 0:
+            raise ValueError(f"vae.posterior_std must be positive, got {self.posterior_std}")
         for key in ("alpha", "lambda_regu", "w_a1", "w_a2", "action_noise"):
             if getattr(self, key) < 0:
                 raise ValueError(f"vae.{key} must be non-negative, got {getattr(self, key)}")
