@@ -44,7 +44,7 @@ def load_world(cfg: Config) -> tuple[Character, MotionLibrary]:
 
 def sim_config(cfg: Config) -> SimConfig:
     """The simulator as evaluation runs it: the character's rates, falls detected."""
-    return SimConfig(sim_hz=cfg.character.sim_hz, control_hz=cfg.character.control_hz)
+    return SimConfig(sim_hz=cfg.character.sim_hz, control_hz=cfg.character.control_hz, terrain=cfg.terrain)
 
 
 def collection_sim_config(cfg: Config) -> SimConfig:
@@ -102,9 +102,12 @@ class RolloutActor:
         return weights.version
 
     def configure(self, settings: dict[str, Any]) -> None:
-        """Settings the loop changes during training: `start_weights` [library frames] (data balancing)."""
+        """Settings the loop changes during training: `start_weights` [library frames] (data balancing);
+        the rest go to the policy, if it takes settings (the task policy's frozen skill model)."""
         if "start_weights" in settings:
             self.worker.library.set_frame_weights(settings["start_weights"])
+        if hasattr(self.worker.policy, "configure"):
+            self.worker.policy.configure(settings)
 
     def collect(self, steps: int) -> Trajectory:
         return self.worker.collect(steps)

@@ -17,12 +17,14 @@ from omegaconf import DictConfig, OmegaConf
 
 from workers.learners.discriminator import DiscriminatorConfig
 from workers.learners.ppo import PPOConfig
+from workers.learners.task import TaskConfig
 from workers.learners.vae import VAEConfig
 from workers.learners.world_model import WorldModelConfig
 from workers.motion.errors import ClipError
 from workers.motion.formats import resolve
 from workers.rewards import DEFAULT_WEIGHTS as IMITATION_WEIGHTS
 from workers.rewards import IMITATION_TERMS
+from workers.sim.terrain import TerrainConfig
 
 LOCOMOTION = [
     "humanoid3d_walk",
@@ -39,7 +41,7 @@ class ConfigError(ValueError):
 
 
 # The learners' configs name their keys from their own root; here they live under algo.
-_KEY_ROOTS = {"vae.": "algo.vae.", "world_model.": "algo.world_model."}
+_KEY_ROOTS = {"vae.": "algo.vae.", "world_model.": "algo.world_model.", "task.": "algo.task."}
 
 
 def _full_key(message: str) -> str:
@@ -237,6 +239,7 @@ SECTIONS: dict[str, type] = {
     "demos": DemosConfig,
     "offline": OfflineConfig,
     "pulse": PulseConfig,
+    "task": TaskConfig,
 }
 
 
@@ -255,6 +258,7 @@ class AlgoConfig:
     demos: DemosConfig | None = field(default_factory=DemosConfig)
     offline: OfflineConfig | None = field(default_factory=OfflineConfig)
     pulse: PulseConfig | None = field(default_factory=PulseConfig)
+    task: TaskConfig | None = field(default_factory=TaskConfig)
     loop: LoopConfig = field(default_factory=LoopConfig)
     # The stages this method needs, role -> spec: "<algo> [key=value ...]" (a stage composed like a
     # run of its own and reused when an identical one has finished in the store) or "run:<id>"
@@ -322,11 +326,18 @@ class EvalConfig:
     # from random reference starts, deterministic actions (AMP: 32 episodes of up to 20 s per seed).
     pose_episodes: int = 32
     pose_seconds: float = 20.0
+    # Downstream tasks: episodes of task_seconds under the task policy's mean, one per goal of a fixed
+    # set (the same goals for every run: seeded by task_goal_seed, not by the run's seed).
+    task_goals: int = 16
+    task_seconds: float = 10.0
+    task_goal_seed: int = 1234
 
     def __post_init__(self) -> None:
         for key in ("fall_rollouts", "random_rollouts", "random_steps"):
             if getattr(self, key) < 1:
                 raise ConfigError(f"eval.{key} must be at least 1, got {getattr(self, key)}")
+        if self.task_goals < 1 or self.task_seconds <= 0:
+            raise ConfigError("eval.task_goals must be at least 1 and eval.task_seconds positive")
         if self.pose_episodes < 1 or self.pose_seconds <= 0:
             raise ConfigError("eval.pose_episodes must be at least 1 and eval.pose_seconds positive")
         if self.fall_max_seconds <= 0 or self.tracking_seconds <= 0:
@@ -341,6 +352,9 @@ class Config:
     runtime: RuntimeConfig = field(default_factory=RuntimeConfig)
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
+    # The ground the rollout workers and evaluations simulate (not shared with upstream stages: a task on
+    # rough terrain uses a skill model trained on flat ground).
+    terrain: TerrainConfig = field(default_factory=TerrainConfig)
     # Seed of everything: network initialisation, sampling, the simulators.
     seed: int = 0
     # The preset that made this config (the MLflow experiment unless tracking.experiment says otherwise).

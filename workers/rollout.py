@@ -126,7 +126,8 @@ class RolloutWorker:
         self.generator = torch.Generator().manual_seed(int(torch_seed))
         self.policy = policy
         policy.bind(num_envs, self.rng, self.generator)
-        self.recorders = list(recorders)
+        # A policy that records too (the task policy: its goals and rewards) records after the others.
+        self.recorders = list(recorders) + ([policy] if isinstance(policy, Recorder) else [])
         # Counters for `stats`.
         self.steps_collected = 0
         self.episodes = 0

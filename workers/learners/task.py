@@ -1,8 +1,11 @@
 """Model-based task learning through the frozen world model and VAE controller (ControlVAE §4.2).
 
 Each update rolls the task policy out for T steps in the world model from buffer
-states, under a recorded goal sequence, and minimises Eq. 22:
+states, under the goal sequence recorded after each (`GoalBuffer`, ControlVAE's B_g
+of 4096 simulated states), and minimises Eq. 22:
 Σ_t [L_g(s_t) + L_fall(s_t)] + w_z Σ_t ‖μ_g‖², averaged over steps and trajectories.
+z is sampled around μ_p + μ_g with the prior's std by reparameterisation (Eq. 21),
+and the step size decays as lr · max(decay^update, floor) (ControlVAE §5.5).
 """
 
 from __future__ import annotations
@@ -19,13 +22,21 @@ from workers.models.task import TaskPolicy
 from workers.models.vae import VAEController
 from workers.models.world_model import WorldModel
 
+TRAINERS = ("model", "ppo")
+
 
 @dataclass
 class TaskConfig:
-    # heading | height | steering | location
+    # heading | steering | point_goal | height | vr (workers.losses.task)
     task: str = "heading"
-    # μ_g network and helper branch H hidden layers (PhysicsVAE: task encoder (256, 128), helper (128, 128)).
-    hidden: tuple[int, ...] = (256, 128)
+    # model: through the frozen world model (ControlVAE §4.2); ppo: PPO in the simulator, reward e^(-L_g).
+    trainer: str = "model"
+    # The prior type of the skill stage, a label for sweeps whose algo.needs.skill interpolates it
+    # (ablation_prior); null where the stage's own config says it.
+    skill_prior: str | None = None
+    # μ_g network and helper branch H hidden layers (ControlVAE: three of 256 for heading, 512 otherwise;
+    # PhysicsVAE: task encoder (256, 128), helper (128, 128)).
+    hidden: tuple[int, ...] = (256, 256, 256)
     helper_hidden: tuple[int, ...] = (128, 128)
     activation: str = "elu"
     # σ of the helper branch Δa = σ·tanh(H(s, z)); 0 turns it off (PhysicsVAE: 0.1 baseline, 1.0 rough terrain).
@@ -39,13 +50,30 @@ class TaskConfig:
     # Synthetic rollouts: length T (ControlVAE 16) and number per update (256).
     rollout_steps: int = 16
     batch_size: int = 256
+    # Sample z around its mean with the prior's std (Eq. 21's reparameterised Gaussian); false: the mean.
+    latent_noise: bool = True
+    # RAdam at lr · max(lr_decay^update, lr_floor) (ControlVAE §5.5: 0.001 · max(0.99^iteration, 0.1)).
     optimizer: str = "radam"
-    lr: float = 1e-4
+    lr: float = 1e-3
+    lr_decay: float = 0.99
+    lr_floor: float = 0.1
     grad_clip: float = 1.0
+    # Goal changes per second within an episode (ControlVAE: every 72 control steps at its 20 Hz, 3.6 s).
+    change_rate: float = 20.0 / 72.0
+    # Simulated start states kept for the synthetic rollouts (ControlVAE's B_g: 4096).
+    buffer_size: int = 4096
 
     def __post_init__(self) -> None:
         if self.task not in GOAL_DIMS:
             raise ValueError(f"task.task: unknown task {self.task!r}; expected one of {sorted(GOAL_DIMS)}")
+        if self.trainer not in TRAINERS:
+            raise ValueError(f"task.trainer: unknown trainer {self.trainer!r}; expected one of {TRAINERS}")
+        if not 0 < self.lr_decay <= 1 or not 0 <= self.lr_floor <= 1:
+            raise ValueError(
+                f"task.lr_decay must be in (0, 1] and lr_floor in [0, 1], got {self.lr_decay}, {self.lr_floor}"
+            )
+        if self.change_rate < 0 or self.buffer_size < 1:
+            raise ValueError("task.change_rate must be >= 0 and buffer_size >= 1")
         if self.sigma < 0:
             raise ValueError(f"task.sigma must be non-negative, got {self.sigma}")
         if self.w_z < 0:
@@ -69,19 +97,10 @@ class TaskLearner(Learner):
         world_model: WorldModel,
         action_dim: int,
         config: TaskConfig | None = None,
+        prior_action: bool = True,
     ):
         self.config = c = config or TaskConfig()
-        state_dim = controller.state_norm.mean.shape[0]
-        self.policy = TaskPolicy(
-            state_dim,
-            goal_observation_dim(c.task),
-            controller.latent_dim,
-            action_dim,
-            c.hidden,
-            c.helper_hidden,
-            c.sigma,
-            c.activation,
-        )
+        self.policy = task_policy(controller, action_dim, c, prior_action)
         super().__init__(self.policy, make_optimizer(c.optimizer, self.policy.parameters(), c.lr), c.grad_clip)
         self.controller = controller.requires_grad_(False).eval()
         self.world_model = world_model.requires_grad_(False).eval()
@@ -93,6 +112,9 @@ class TaskLearner(Learner):
             self.world_model.load_state_dict(world_model.state)
 
     def before_update(self, batch: TaskBatch) -> None:
+        c = self.config
+        for group in self.optimizer.param_groups:
+            group["lr"] = c.lr * max(c.lr_decay**self.version, c.lr_floor)
         self.policy.state_norm.update(body_state.features(as_tensor(batch.states)))
 
     def loss(self, batch: TaskBatch) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
@@ -102,7 +124,9 @@ class TaskLearner(Learner):
         sums: dict[str, torch.Tensor] = {}
         for t in range(goals.shape[1]):
             goal = goals[:, t]
-            action, mu_g = self.policy(self.controller, body_state.features(bs), goal_observation(c.task, bs, goal))
+            s = body_state.features(bs)
+            eps = torch.randn(bs.shape[0], self.controller.latent_dim) if c.latent_noise else None
+            action, mu_g = self.policy(self.controller, s, goal_observation(c.task, bs, goal), eps)
             bs = self.world_model(bs, action)
             total, terms = task_loss(c.task, bs, goal, c.weights, c.fall_height)
             totals.append(total)
@@ -122,3 +146,63 @@ class TaskLearner(Learner):
         self.policy.eval()
         total, terms = self.loss(batch)
         return {"loss": float(total), **{k: float(v) for k, v in terms.items()}}
+
+
+def task_policy(controller: VAEController, action_dim: int, c: TaskConfig, prior_action: bool = True) -> TaskPolicy:
+    """The task policy a TaskConfig describes, on `controller`'s state features and latent space."""
+    return TaskPolicy(
+        controller.state_norm.mean.shape[0],
+        goal_observation_dim(c.task),
+        controller.latent_dim,
+        action_dim,
+        c.hidden,
+        c.helper_hidden,
+        c.sigma,
+        c.activation,
+        prior_action,
+    )
+
+
+class GoalBuffer:
+    """ControlVAE's B_g: the newest simulated states with the goals that followed each, as collected.
+
+    `add` takes a collection's body states [T, M, B, 13] and goals [T, M, G]; `sample` draws start
+    states and the recorded goal sequence of the next `steps` control steps from each (repeating the
+    last goal where the collection ends sooner). The oldest collections go once more than
+    `capacity` states are held.
+    """
+
+    def __init__(self, capacity: int):
+        self.capacity = capacity
+        self.chunks: list[tuple[np.ndarray, np.ndarray]] = []
+
+    def __len__(self) -> int:
+        return sum(s.shape[0] * s.shape[1] for s, _ in self.chunks)
+
+    def add(self, states: np.ndarray, goals: np.ndarray) -> None:
+        self.chunks.append((np.asarray(states, np.float32), np.asarray(goals, np.float32)))
+        while (
+            len(self.chunks) > 1
+            and len(self) - self.chunks[0][0].shape[0] * self.chunks[0][0].shape[1] >= self.capacity
+        ):
+            self.chunks.pop(0)
+
+    def sample(self, n: int, steps: int, rng: np.random.Generator) -> TaskBatch:
+        sizes = np.array([s.shape[0] * s.shape[1] for s, _ in self.chunks])
+        if not sizes.sum():
+            raise ValueError("the goal buffer is empty")
+        flat = rng.integers(sizes.sum(), size=n)
+        chunk = np.searchsorted(np.cumsum(sizes), flat, side="right")
+        states, goals = [], []
+        for k, i in zip(chunk, flat - np.concatenate(([0], np.cumsum(sizes)))[chunk], strict=True):
+            s, g = self.chunks[k]
+            t, m = divmod(int(i), s.shape[1])
+            states.append(s[t, m])
+            goals.append(g[np.minimum(t + np.arange(steps), s.shape[0] - 1), m])
+        return TaskBatch(torch.from_numpy(np.stack(states)), torch.from_numpy(np.stack(goals)))
+
+    def state_dict(self) -> dict:
+        return {"chunks": [(s.copy(), g.copy()) for s, g in self.chunks]}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.chunks = [(np.asarray(s, np.float32), np.asarray(g, np.float32)) for s, g in state["chunks"]]

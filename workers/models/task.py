@@ -2,9 +2,11 @@
 
 z = μ_p(s) + μ_g(s, g): a residual on the prior mean (ControlVAE Eq. 21, PULSE
 Eq. 4; with the standard normal prior μ_p = 0 and μ_g is PhysicsVAE's task
-encoder). The action is the frozen decoder's, plus the helper branch
-Δa = σ · tanh(H(s, z)) when σ > 0 (PhysicsVAE Eq. 2), so that no action dimension
-moves by more than σ from what the decoder would do.
+encoder; without `prior_action`, PULSE's ablation, z = μ_g). ControlVAE's task
+policy is a Gaussian around that mean with the prior's standard deviation, sampled
+with the reparameterisation trick (`eps`). The action is the frozen decoder's,
+plus the helper branch Δa = σ · tanh(H(s, z)) when σ > 0 (PhysicsVAE Eq. 2), so
+that no action dimension moves by more than σ from what the decoder would do.
 """
 
 from __future__ import annotations
@@ -29,11 +31,13 @@ class TaskPolicy(nn.Module):
         helper_hidden: Sequence[int] = (128, 128),
         sigma: float = 0.0,
         act: str = "elu",
+        prior_action: bool = True,
     ):
         super().__init__()
         if sigma < 0:
             raise ValueError(f"helper sigma must be non-negative, got {sigma}")
         self.sigma = sigma
+        self.prior_action = prior_action
         self.state_norm = Normalizer(state_dim)
         self.encoder = mlp(state_dim + goal_dim, hidden, latent_dim, act, out_scale=0.1)
         self.helper = mlp(state_dim + latent_dim, helper_hidden, action_dim, act, out_scale=0.1) if sigma > 0 else None
@@ -48,10 +52,32 @@ class TaskPolicy(nn.Module):
             return s.new_zeros(())
         return self.sigma * torch.tanh(self.helper(torch.cat((self.state_norm(s), z), dim=-1)))
 
+    def latent(
+        self, controller: VAEController, s: torch.Tensor, goal_obs: torch.Tensor, eps: torch.Tensor | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """(z [..., Z], μ_g [..., Z]): the prior's mean plus μ_g, plus the prior's std times `eps` if given."""
+        mu_g = self.latent_offset(s, goal_obs)
+        if not self.prior_action and eps is None:
+            return mu_g, mu_g
+        prior = controller.prior_dist(s)
+        z = prior.mean + mu_g if self.prior_action else mu_g
+        if eps is not None:
+            z = z + prior.log_std.exp() * eps
+        return z, mu_g
+
     def forward(
-        self, controller: VAEController, s: torch.Tensor, goal_obs: torch.Tensor
+        self, controller: VAEController, s: torch.Tensor, goal_obs: torch.Tensor, eps: torch.Tensor | None = None
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """(action [..., A], μ_g [..., Z]) for features s [..., D] and goal observations [..., G]."""
-        mu_g = self.latent_offset(s, goal_obs)
-        z = controller.prior_dist(s).mean + mu_g
-        return controller.act(s, z) + self.helper_offset(s, z), mu_g
+        action, _, mu_g = self.act(controller, s, goal_obs, eps)
+        return action, mu_g
+
+    def act(
+        self, controller: VAEController, s: torch.Tensor, goal_obs: torch.Tensor, eps: torch.Tensor | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(applied action, the decoder's own action D(s, z), μ_g): the two actions differ by the helper's Δa."""
+        z, mu_g = self.latent(controller, s, goal_obs, eps)
+        decoded = controller.act(s, z)
+        if self.helper is None:
+            return decoded, decoded, mu_g
+        return decoded + self.helper_offset(s, z), decoded, mu_g

@@ -1,0 +1,123 @@
+"""The task learner (`learner-task` of `algo=task`) and how a skill stage's frozen networks are read.
+
+`skill_model` reads a skill stage (controlvae, physicsvae or pulse) from its run:
+its VAE config and decoder/prior weights, whether a task acts as a residual on its
+prior's mean (PULSE's `prior_action`; always for the others), and, for the
+model-based trainer, the world model to learn through (ControlVAE's own; PhysicsVAE's
+simulation layer, from its world_model stage). Anything else is refused with the
+stage and run named.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import torch
+
+from orchestrator.components import LearnerActor, seed_of
+from orchestrator.components_offline import layer_state
+from orchestrator.schema import Config
+from orchestrator.stages import StageError, Upstream
+from workers.learners.task import GoalBuffer, TaskLearner
+from workers.models.world_model import WorldModel
+from workers.replay import Trajectory
+from workers.task_policy import skill_controller
+
+SKILLS = ("controlvae", "physicsvae", "pulse")
+
+
+def skill_model(up: Upstream, world_model: bool) -> dict[str, Any]:
+    """{"name", "config": VAEConfig, "module", "prior_action", and with `world_model`: "world_model":
+    (WorldModelConfig, state dict)} of the skill stage `up`; a StageError naming it if it is not one."""
+    cfg = up.config()
+    name = cfg.algo.name
+    if name not in SKILLS or cfg.algo.vae is None:
+        raise StageError(f"{up.describe()}: a {name} run is not a skill model (expected one of {', '.join(SKILLS)})")
+    state = up.checkpoint()
+    vae = state.get("vae")
+    if not isinstance(vae, dict):
+        raise StageError(f"{up.describe()}: its checkpoint has no vae state")
+    module = vae["learner"]["module"] if "learner" in vae else vae.get("module")
+    if module is None:
+        raise StageError(f"{up.describe()}: its checkpoint's vae state has no weights")
+    prior_action = bool(cfg.algo.pulse.prior_action) if name == "pulse" and cfg.algo.pulse is not None else True
+    out = {"name": name, "config": cfg.algo.vae, "module": module, "prior_action": prior_action}
+    if world_model:
+        out["world_model"] = _world_model(up, cfg, state)
+    return out
+
+
+def _world_model(up: Upstream, cfg: Config, state: dict[str, Any]) -> tuple[Any, dict[str, Any]]:
+    if cfg.algo.name == "controlvae" and "world_model" in state:
+        return cfg.algo.world_model, state["world_model"]["module"]
+    if cfg.algo.name == "physicsvae" and "world_model" in up.lineage:
+        from mlflow.tracking import MlflowClient
+
+        from orchestrator.stages import _existing
+
+        layer = _existing(
+            MlflowClient(up.uri),
+            "skill.world_model",
+            up.lineage["world_model"],
+            up.uri,
+            up.cache.parent / "skill.world_model",
+        )
+        return layer.config().algo.world_model, layer_state(layer)
+    raise StageError(
+        f"{up.describe()}: a {cfg.algo.name} skill model has no world model to learn through; use algo.task.trainer=ppo"
+    )
+
+
+class TaskActor(LearnerActor):
+    """The task policy's learner with the frozen skill model and world model, and B_g (`GoalBuffer`)."""
+
+    def __init__(self, cfg: Config, num_bodies: int, action_dim: int, skill: Upstream):
+        super().__init__()
+        torch.set_num_threads(cfg.runtime.torch_threads)
+        torch.manual_seed(seed_of(cfg, 5))
+        payload = skill_model(skill, world_model=True)  # read here: a restarted actor needs nothing from the driver
+        controller = skill_controller(payload, num_bodies, action_dim)
+        wm_cfg, wm_state = payload["world_model"]
+        wm = WorldModel(
+            num_bodies, action_dim, wm_cfg.hidden, wm_cfg.activation, 1.0 / cfg.character.control_hz, wm_cfg.integrator
+        )
+        wm.load_state_dict(wm_state)
+        task = cfg.algo.task
+        self.learner = TaskLearner(controller, wm, action_dim, task, payload["prior_action"])
+        self.buffer = GoalBuffer(task.buffer_size)
+        self.rng = np.random.default_rng(seed_of(cfg, 6))
+        self.steps = task.rollout_steps
+
+    def add_trajectory(self, traj: Trajectory) -> dict[str, Any]:
+        """Keep the states and goals of a collection; what the loop logs of it."""
+        self.buffer.add(traj.states, traj.extras["goal"])
+        terms = {k.removeprefix("reward/"): float(v.sum()) for k, v in traj.extras.items() if k.startswith("reward/")}
+        return {
+            "transitions": int(traj.done.size),
+            "size": len(self.buffer),
+            "episode_ends": int(traj.done.sum()),
+            "reward_sum": float(traj.extras["reward"].sum()),
+            "deviation_sum": float(np.degrees(traj.extras["helper_deviation"]).sum()),
+            "terms": terms,
+            "version": int(traj.version),
+            "incarnation": self.incarnation,
+        }
+
+    def train(self, updates: int) -> dict[str, Any]:
+        batch = self.learner.config.batch_size
+        return self.report(
+            [self.learner.update(self.buffer.sample(batch, self.steps, self.rng)) for _ in range(updates)]
+        )
+
+    def state_dict(self) -> dict[str, Any]:
+        return {
+            "learner": self.learner.state_dict(),
+            "buffer": self.buffer.state_dict(),
+            "rng": self.rng.bit_generator.state,
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.learner.load_state_dict(state["learner"])
+        self.buffer.load_state_dict(state["buffer"])
+        self.rng.bit_generator.state = state["rng"]

@@ -1,0 +1,180 @@
+"""The task policy on a frozen skill decoder, as a rollout worker runs it.
+
+`TaskRolloutPolicy` is a `Policy` and a `Recorder` at once: it keeps every
+environment's goal (`workers.goals.GoalSampler`: drawn when an episode starts,
+redrawn within it at the task's change rate, part of the policy's input), acts
+with z around μ_p(s) + μ_g(s, g) and the frozen decoder (plus the helper branch
+when σ > 0), and records per step the goal it acted for (`goal`), the task reward
+e^(−L_g) of the state it reached (`reward`, with each term under `reward/<term>`),
+and the helper's mean absolute deviation from the decoder's own action
+(`helper_deviation`, radians).
+
+The frozen skill model (the decoder, its prior and the VAE config that builds
+them) arrives once through `configure({"skill": ...})`; the task policy's own
+weights arrive with every version through `set_weights`.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import torch
+
+from workers.goals import GoalSampler
+from workers.learners.base import Weights
+from workers.learners.task import TaskConfig, task_policy
+from workers.learners.vae import build_controller
+from workers.losses.task import goal_observation, task_terms
+from workers.models import body_state
+from workers.policies import Policy
+from workers.rollout import Recorder
+from workers.sim.env import BatchedSim, StepResult
+
+
+def skill_controller(skill: dict[str, Any], num_bodies: int, action_dim: int) -> torch.nn.Module:
+    """The frozen VAE controller of a skill payload {"config": VAEConfig, "module": state dict, ...}."""
+    controller = build_controller(num_bodies, action_dim, skill["config"])
+    controller.load_state_dict(skill["module"])
+    return controller.eval().requires_grad_(False)
+
+
+class TaskRolloutPolicy(Policy, Recorder):
+    def __init__(self, num_bodies: int, action_dim: int, config: TaskConfig, control_hz: float, stochastic=True):
+        self.num_bodies, self.action_dim = num_bodies, action_dim
+        self.config, self.control_hz = config, control_hz
+        self.stochastic = stochastic and config.latent_noise
+        self.controller: torch.nn.Module | None = None
+        self.module: torch.nn.Module | None = None
+        self.weights: Weights | None = None
+
+    def bind(self, num_envs: int, rng: np.random.Generator, generator: torch.Generator) -> None:
+        super().bind(num_envs, rng, generator)
+        self.goals = GoalSampler(self.config.task, num_envs, self.control_hz, self.config.change_rate, rng)
+        self.unset = np.arange(num_envs)  # environments whose goals are drawn at the next act
+
+    def configure(self, settings: dict[str, Any]) -> None:
+        if "skill" not in settings:
+            return
+        skill = settings["skill"]
+        self.controller = skill_controller(skill, self.num_bodies, self.action_dim)
+        module = task_policy(self.controller, self.action_dim, self.config, skill.get("prior_action", True))
+        self.module = module.eval().requires_grad_(False)
+        if self.weights is not None:
+            self.module.load_state_dict(self.weights.state)
+
+    def set_weights(self, weights: Weights) -> None:
+        self.weights = weights
+        self.version = int(weights.version)
+        if self.module is not None:
+            self.module.load_state_dict(weights.state)
+
+    @torch.no_grad()
+    def actions(self, sim: BatchedSim, bs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(applied actions [M, A], the decoder's own actions [M, A]) for body states bs [M, B, 13]."""
+        if self.module is None:
+            raise RuntimeError("the task policy has no skill model yet (configure({'skill': ...}) first)")
+        self._draw_unset_goals(sim, bs)
+        b = torch.from_numpy(bs)
+        s = body_state.features(b)
+        obs = goal_observation(self.config.task, b, torch.from_numpy(self.goals.goals))
+        eps = None
+        if self.stochastic:
+            eps = torch.randn((len(bs), self.controller.latent_dim), generator=self.generator)
+        applied, decoded, _ = self.module.act(self.controller, s, obs, eps)
+        return applied.numpy(), decoded.numpy()
+
+    def _draw_unset_goals(self, sim: BatchedSim, bs: np.ndarray) -> None:
+        if len(self.unset):
+            self.goals.reset(sim, bs, self.unset)
+            self.unset = self.unset[:0]
+
+    def act(self, sim: BatchedSim, bs: np.ndarray) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+        applied, decoded = self.actions(sim, bs)
+        deviation = np.abs(applied - decoded).mean(-1).astype(np.float32)
+        return applied, {"goal": self.goals.goals.copy(), "helper_deviation": deviation}
+
+    # Recorder: the task reward of each step, for the goal the step was taken for ------------
+    def begin(self, steps: int, num_envs: int, sim: BatchedSim) -> None:
+        self.reward = np.empty((steps, num_envs), np.float32)
+        self.terms: dict[str, np.ndarray] = {}
+
+    def record(self, t: int, sim: BatchedSim, result: StepResult) -> None:
+        bs, goal = torch.from_numpy(body_state.pack(result.kin)), torch.from_numpy(self.goals.goals)
+        terms = task_terms(self.config.task, bs, goal)
+        self.reward[t] = np.exp(-sum(self.config.weights[k] * v for k, v in terms.items()).numpy())
+        for k, v in terms.items():
+            self.terms.setdefault(k, np.empty_like(self.reward))[t] = v.numpy()
+        self.goals.advance(sim, bs.numpy())
+
+    def after_reset(self, sim: BatchedSim, ids: np.ndarray) -> None:
+        self.goals.reset(sim, body_state.pack(sim.kin_state()), ids)
+
+    def finish(self) -> dict[str, np.ndarray]:
+        return {"reward": self.reward, **{f"reward/{k}": v for k, v in self.terms.items()}}
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"goals": self.goals.state_dict(), "unset": self.unset.copy()}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.goals.load_state_dict(state["goals"])
+        self.unset = np.asarray(state["unset"], np.int64).copy()
+
+
+class TaskPPOPolicy(TaskRolloutPolicy):
+    """The task policy as PPO trains it in the simulator: a Gaussian actor-critic on (s, goal) whose action u
+    is the latent offset μ_g (Z) and, with σ > 0, the helper's pre-activation h (A); the applied action is
+    D(s, μ_p(s) + u_z) + σ·tanh(u_h). Its extras are PPO's (observation, u, log π(u | o)) and the task's."""
+
+    observes = True
+
+    def __init__(self, num_bodies: int, action_dim: int, config: TaskConfig, control_hz: float, ppo_config):
+        super().__init__(num_bodies, action_dim, config, control_hz)
+        self.ppo_config = ppo_config
+        self.prior_action = True
+
+    def configure(self, settings: dict[str, Any]) -> None:
+        from workers.learners.ppo import build_actor_critic
+        from workers.losses.task import goal_observation_dim
+
+        if "skill" not in settings:
+            return
+        skill = settings["skill"]
+        self.controller = skill_controller(skill, self.num_bodies, self.action_dim)
+        self.prior_action = bool(skill.get("prior_action", True))
+        obs_dim = self.controller.state_norm.mean.shape[0] + goal_observation_dim(self.config.task)
+        act_dim = self.controller.latent_dim + (self.action_dim if self.config.sigma > 0 else 0)
+        self.module = build_actor_critic(obs_dim, act_dim, self.ppo_config).eval().requires_grad_(False)
+        if self.weights is not None:
+            self.module.load_state_dict(self.weights.state)
+
+    def observe(self, sim: BatchedSim, bs: np.ndarray) -> np.ndarray:
+        self._draw_unset_goals(sim, bs)
+        b = torch.from_numpy(bs)
+        goal = goal_observation(self.config.task, b, torch.from_numpy(self.goals.goals))
+        return torch.cat((body_state.features(b), goal), dim=-1).numpy()
+
+    @torch.no_grad()
+    def decode(self, bs: np.ndarray, u: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
+        """(applied, decoder's own) actions [M, A] for the PPO action u [M, Z (+ A)]."""
+        s = body_state.features(torch.from_numpy(bs))
+        latent = self.controller.latent_dim
+        z = u[:, :latent] + (self.controller.prior_dist(s).mean if self.prior_action else 0.0)
+        decoded = self.controller.act(s, z)
+        applied = decoded + self.config.sigma * torch.tanh(u[:, latent:]) if self.config.sigma > 0 else decoded
+        return applied.numpy(), decoded.numpy()
+
+    @torch.no_grad()
+    def actions(self, sim: BatchedSim, bs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        if self.module is None:
+            raise RuntimeError("the task policy has no skill model yet (configure({'skill': ...}) first)")
+        return self.decode(bs, self.module.mean(torch.from_numpy(self.observe(sim, bs))))
+
+    @torch.no_grad()
+    def act(self, sim: BatchedSim, bs: np.ndarray) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+        obs = self.observe(sim, bs)
+        u, log_prob = self.module.act(torch.from_numpy(obs), generator=self.generator)
+        applied, decoded = self.decode(bs, u)
+        deviation = np.abs(applied - decoded).mean(-1).astype(np.float32)
+        extras = {"obs": obs, "action": u.numpy(), "log_prob": log_prob.numpy()}
+        return applied, {**extras, "goal": self.goals.goals.copy(), "helper_deviation": deviation}
