@@ -10,6 +10,10 @@
   last tenth), its roughness (mean absolute change between consecutive logged
   values, over the range of the curve) and its speed (samples until it first
   reaches half of its final level above its start).
+
+With `facet_by` (a second swept key, e.g. the terrain), each of these groups the runs
+by (facet, compared value): the tables gain a column, `plot_final` a bar per pair and
+`plot_curves` a row of panels per facet.
 """
 
 from __future__ import annotations
@@ -31,6 +35,23 @@ def group(rows: list[dict[str, Any]], compare_by: str) -> dict[str, list[dict[st
     return dict(sorted(out.items(), key=lambda kv: _sort_key(kv[0])))
 
 
+def points(rows: list[dict[str, Any]], compare_by: str, facet_by: str | None = None) -> dict[tuple[str, ...], list]:
+    """Rows by point: (value,) of `compare_by`, or (facet, value) with `facet_by`; facets, then values, in
+    numeric order (with facet_by None, the order of `group`)."""
+    keys = [facet_by, compare_by] if facet_by else [compare_by]
+    out: dict[tuple[str, ...], list[dict[str, Any]]] = defaultdict(list)
+    for r in rows:
+        out[tuple(str(r.get(k)) for k in keys)].append(r)
+    return dict(sorted(out.items(), key=lambda kv: tuple(_sort_key(v) for v in kv[0])))
+
+
+def two_standard_errors(x: np.ndarray, y: np.ndarray) -> float:
+    """Twice the standard error of mean(x) - mean(y) over seeds (NaN with fewer than two seeds on a side)."""
+    if len(x) < 2 or len(y) < 2:
+        return float("nan")
+    return float(2 * np.sqrt(x.var(ddof=1) / len(x) + y.var(ddof=1) / len(y)))
+
+
 def _sort_key(value: str) -> tuple:
     try:
         return (0, float(value), "")
@@ -42,17 +63,20 @@ def _values(rows: list[dict[str, Any]], key: str) -> np.ndarray:
     return np.asarray([float(r[key]) for r in rows if r.get(key) is not None])
 
 
-def final_table(rows: list[dict[str, Any]], compare_by: str, metrics: dict[str, str]) -> str:
+def final_table(
+    rows: list[dict[str, Any]], compare_by: str, metrics: dict[str, str], facet_by: str | None = None
+) -> str:
+    columns = [facet_by, compare_by] if facet_by else [compare_by]
     lines = [
-        f"| {compare_by} | seeds | " + " | ".join(metrics.values()) + " |",
-        "| --- | --- |" + " --- |" * len(metrics),
+        "| " + " | ".join(columns) + " | seeds | " + " | ".join(metrics.values()) + " |",
+        "|" + " --- |" * (len(columns) + 1 + len(metrics)),
     ]
-    for value, members in group(rows, compare_by).items():
+    for point, members in points(rows, compare_by, facet_by).items():
         cells = []
         for key in metrics:
             v = _values(members, key)
             cells.append(f"{v.mean():.3f} ± {v.std():.3f}" if len(v) else "n/a")
-        lines.append(f"| {value} | {len(members)} | " + " | ".join(cells) + " |")
+        lines.append("| " + " | ".join(point) + f" | {len(members)} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
 
@@ -62,17 +86,22 @@ def plot_final(
     metrics: dict[str, str],
     path: Path,
     reference: dict[str, float] | None = None,
+    facet_by: str | None = None,
 ) -> None:
-    """reference: the paper's value of some metrics, drawn as a dashed line."""
-    groups = group(rows, compare_by)
-    names = list(groups)
-    fig = Figure(figsize=(4.5 * len(metrics), 3.5))
+    """reference: the paper's value of some metrics, drawn as a dashed line. With facet_by, a bar per
+    (facet, value), coloured by facet."""
+    groups = points(rows, compare_by, facet_by)
+    names = ["\n".join(reversed(p)) for p in groups]  # the value, and the facet under it
+    facets = list(dict.fromkeys(p[0] for p in groups))
+    colours = [f"C{facets.index(p[0])}" if facet_by else "tab:blue" for p in groups]
+    width = max(4.5, 0.6 * len(names)) if facet_by else 4.5
+    fig = Figure(figsize=(width * len(metrics), 3.5))
     axes = np.atleast_1d(fig.subplots(1, len(metrics)))
     for ax, (key, label) in zip(axes, metrics.items(), strict=True):
-        vals = [_values(groups[n], key) for n in names]
+        vals = [_values(members, key) for members in groups.values()]
         means = [v.mean() if len(v) else np.nan for v in vals]
         stds = [v.std() if len(v) else 0.0 for v in vals]
-        ax.bar(np.arange(len(names)), means, yerr=stds, capsize=4, color="tab:blue")
+        ax.bar(np.arange(len(names)), means, yerr=stds, capsize=4, color=colours)
         ax.set_xticks(np.arange(len(names)), names)  # positions, not category strings that parse as numbers
         for i, v in enumerate(vals):
             ax.scatter([i] * len(v), v, color="black", s=10, zorder=3)
@@ -80,7 +109,7 @@ def plot_final(
             ax.axhline(reference[key], color="tab:red", linestyle="--", label=f"paper {reference[key]:g}")
             ax.legend(fontsize=8)
         ax.set_ylabel(label)
-        ax.set_xlabel(compare_by)
+        ax.set_xlabel(f"{compare_by} / {facet_by}" if facet_by else compare_by)
     fig.tight_layout()
     fig.savefig(path, dpi=100)
 
@@ -96,34 +125,51 @@ def _on_grid(histories: list[History], grid: np.ndarray) -> np.ndarray:
     return out
 
 
+def draw_curves(
+    ax: Any,
+    groups: dict[str, list[dict[str, Any]]],
+    histories: dict[str, dict[str, History]],
+    key: str,
+    compare_by: str,
+    colours: dict[str, str],
+) -> None:
+    """On `ax`, metric `key`'s curve per group: the mean over its runs and a band from the lowest to the highest."""
+    for value, members in groups.items():
+        hs = [histories.get(m["run_id"], {}).get(key, []) for m in members]
+        last = max((h[-1][0] for h in hs if h), default=0)
+        if not last:
+            continue
+        grid = np.linspace(0, last, 100)
+        ys = _on_grid(hs, grid)
+        ok = ~np.all(np.isnan(ys), axis=0)
+        colour = colours[value]
+        ax.plot(grid[ok], np.nanmean(ys[:, ok], axis=0), color=colour, label=f"{compare_by}={value}")
+        if len(hs) > 1:
+            ax.fill_between(grid[ok], np.nanmin(ys[:, ok], 0), np.nanmax(ys[:, ok], 0), color=colour, alpha=0.2)
+    ax.set_xlabel("environment samples")
+
+
 def plot_curves(
     rows: list[dict[str, Any]],
     histories: dict[str, dict[str, History]],
     compare_by: str,
     curves: dict[str, str],
     path: Path,
+    facet_by: str | None = None,
 ) -> None:
-    """rows carry run_id; histories[run_id][metric] is that run's history."""
-    groups = group(rows, compare_by)
-    fig = Figure(figsize=(4.5 * len(curves), 3.5))
-    axes = np.atleast_1d(fig.subplots(1, len(curves)))
-    colours = [f"C{i}" for i in range(10)]
-    for ax, (key, label) in zip(axes, curves.items(), strict=True):
-        for c, (value, members) in enumerate(groups.items()):
-            hs = [histories.get(m["run_id"], {}).get(key, []) for m in members]
-            last = max((h[-1][0] for h in hs if h), default=0)
-            if not last:
-                continue
-            grid = np.linspace(0, last, 100)
-            ys = _on_grid(hs, grid)
-            ok = ~np.all(np.isnan(ys), axis=0)
-            colour = colours[c % len(colours)]
-            ax.plot(grid[ok], np.nanmean(ys[:, ok], axis=0), color=colour, label=f"{compare_by}={value}")
-            if len(hs) > 1:
-                ax.fill_between(grid[ok], np.nanmin(ys[:, ok], 0), np.nanmax(ys[:, ok], 0), color=colour, alpha=0.2)
-        ax.set_xlabel("environment samples")
-        ax.set_ylabel(label)
-    axes[0].legend(fontsize=8)
+    """rows carry run_id; histories[run_id][metric] is that run's history. With facet_by, a row of panels per
+    facet; a compared value keeps its colour across them."""
+    colours = {value: f"C{c % 10}" for c, value in enumerate(group(rows, compare_by))}
+    facets = group(rows, facet_by) if facet_by else {"": rows}
+    fig = Figure(figsize=(4.5 * len(curves), 3.5 * len(facets)))
+    axes = fig.subplots(len(facets), len(curves), squeeze=False)
+    for row_axes, (facet, members) in zip(axes, facets.items(), strict=True):
+        for ax, (key, label) in zip(row_axes, curves.items(), strict=True):
+            draw_curves(ax, group(members, compare_by), histories, key, compare_by, colours)
+            ax.set_ylabel(label)
+            if facet_by:
+                ax.set_title(f"{facet_by} = {facet}", fontsize=9)
+        row_axes[0].legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=100)
 
@@ -147,19 +193,25 @@ def curve_summary(history: History) -> dict[str, float]:
 
 
 def curve_table(
-    rows: list[dict[str, Any]], histories: dict[str, dict[str, History]], compare_by: str, key: str, label: str
+    rows: list[dict[str, Any]],
+    histories: dict[str, dict[str, History]],
+    compare_by: str,
+    key: str,
+    label: str,
+    facet_by: str | None = None,
 ) -> str:
     """Per point, the summary of metric `key`'s curves as mean ± std over seeds."""
+    columns = [facet_by, compare_by] if facet_by else [compare_by]
     lines = [
-        f"| {compare_by} | final {label} | roughness | samples to half of final |",
-        "| --- | --- | --- | --- |",
+        "| " + " | ".join(columns) + f" | final {label} | roughness | samples to half of final |",
+        "|" + " --- |" * (len(columns) + 3),
     ]
-    for value, members in group(rows, compare_by).items():
+    for point, members in points(rows, compare_by, facet_by).items():
         s = [curve_summary(histories.get(m["run_id"], {}).get(key, [])) for m in members]
         cells = []
         for k in ("final", "roughness", "samples_to_half"):
             v = np.asarray([x[k] for x in s], float)
             v = v[np.isfinite(v)]
             cells.append(f"{v.mean():.3g} ± {v.std():.2g}" if len(v) else "n/a")
-        lines.append(f"| {value} | " + " | ".join(cells) + " |")
+        lines.append("| " + " | ".join(point) + " | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"

@@ -11,7 +11,9 @@ sweep's duration and the jobs log through it.
 When the multirun ends, the children's final metrics are gathered into a table
 (JSON and Markdown) and a figure, with the learning curves of the preset's
 `curves` and the paper's result beside ours (`orchestrator.report`), logged to
-the parent run.
+the parent run. A preset's `facet_by` (a second swept key, e.g. the terrain) groups
+them by (compared value, facet); its `figures` and `claims` name a paper's own
+figures and table of statements (`orchestrator.report_tasks`, `report_physicsvae`).
 """
 
 from __future__ import annotations
@@ -24,7 +26,7 @@ from typing import Any
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig
 
-from orchestrator import report
+from orchestrator import report, report_physicsvae, report_tasks
 
 SWEEP_FILE = "sweep.json"
 SEQUENTIAL_LAUNCHER = "hydra._internal.core_plugins.basic_launcher.BasicLauncher"
@@ -60,7 +62,10 @@ class SweepCallback(Callback):
     spread:     a figure of one per-rollout quantity's mean and spread per point ({"mean", "std", "label",
                 "title"}; PhysicsVAE's Fig. 9), as spread.png.
     claims:     the name of a table of the paper's statements beside our numbers
-                (`orchestrator.report_physicsvae.CLAIMS`).
+                (`orchestrator.report_physicsvae.CLAIMS` or `orchestrator.report_tasks.CLAIMS`).
+    facet_by:   a second swept key (e.g. `terrain.kind`): rows carry it, and the tables and figures group by
+                (compare_by, facet_by); None compares `compare_by` alone (seeds pooled).
+    figures:    names of a paper's own figures (`orchestrator.report_tasks.FIGURES`), each written as <name>.png.
     """
 
     def __init__(
@@ -72,7 +77,18 @@ class SweepCallback(Callback):
         reference: dict[str, float] | None = None,
         spread: dict[str, str] | None = None,
         claims: str | None = None,
+        facet_by: str | None = None,
+        figures: list[str] | None = None,
     ) -> None:
+        # Checked here, when the multirun starts, not after its runs.
+        known = {**report_physicsvae.CLAIMS, **report_tasks.CLAIMS}
+        if claims is not None and claims not in known:
+            raise ValueError(f"callbacks.sweep.claims: unknown table {claims!r}; expected one of {sorted(known)}")
+        unknown = [f for f in figures or [] if f not in report_tasks.FIGURES]
+        if unknown:
+            raise ValueError(
+                f"callbacks.sweep.figures: unknown {unknown}; expected some of {sorted(report_tasks.FIGURES)}"
+            )
         self.compare_by = compare_by
         self.metrics = dict(metrics or DEFAULT_METRICS)
         self.curves = dict(curves or {})
@@ -80,6 +96,8 @@ class SweepCallback(Callback):
         self.reference = dict(reference or {})
         self.spread = dict(spread or {})
         self.claims = claims
+        self.facet_by = facet_by
+        self.figures = list(figures or [])
         self.stages_table = ""
         self.expert_level: float | None = None  # the expert's own time until fall on its demos
         self.tracker = None
@@ -180,35 +198,41 @@ class SweepCallback(Callback):
         self.tracker.flush()
         children = child_runs(self.tracker.uri, self.tracker.run_id)
         wanted = list(self.metrics) + [self.spread[k] for k in ("mean", "std") if k in self.spread]
-        rows = child_results(children, self.compare_by, list(dict.fromkeys(wanted)))
+        rows = child_results(children, self.compare_by, list(dict.fromkeys(wanted)), self.facet_by)
         if rows:
+            by, facet = self.compare_by, self.facet_by
             self.tracker.log_dict({"rows": rows}, "comparison.json")
-            text = f"# {config.preset}\n\n" + report.final_table(rows, self.compare_by, self.metrics)
+            text = f"# {config.preset}\n\n" + report.final_table(rows, by, self.metrics, facet)
             png = self.sweep_dir / "comparison.png"
-            report.plot_final(rows, self.compare_by, self.metrics, png, self.reference)
+            report.plot_final(rows, by, self.metrics, png, self.reference, facet)
             self.tracker.log_artifact(str(png))
             if self.curves:
                 histories = metric_histories(self.tracker.uri, [r["run_id"] for r in rows], list(self.curves))
-                curves_png = self.sweep_dir / "curves.png"
-                report.plot_curves(rows, histories, self.compare_by, self.curves, curves_png)
-                self.tracker.log_artifact(str(curves_png))
-                key, label = next(iter(self.curves.items()))
-                text += "\n" + report.curve_table(rows, histories, self.compare_by, key, label)
+                # A curve no run logged (e.g. the model-based task loss under the PPO trainer) gets no panel.
+                curves = {k: v for k, v in self.curves.items() if any(h.get(k) for h in histories.values())}
+                if curves:
+                    curves_png = self.sweep_dir / "curves.png"
+                    report.plot_curves(rows, histories, by, curves, curves_png, facet)
+                    self.tracker.log_artifact(str(curves_png))
+                    key, label = next(iter(curves.items()))
+                    text += "\n" + report.curve_table(rows, histories, by, key, label, facet)
             if self.spread:
-                from orchestrator.report_physicsvae import plot_spread
-
                 spread_png = self.sweep_dir / "spread.png"
                 sp = self.spread
                 level = None
                 if self.expert_level is not None and sp["mean"] == "eval/time_until_fall_mean":
                     level = (self.expert_level, f"the expert on its demos ({self.expert_level:.2f} s)")
                 label = sp.get("label", sp["mean"])
-                plot_spread(rows, self.compare_by, sp["mean"], sp["std"], label, spread_png, sp.get("title", ""), level)
+                report_physicsvae.plot_spread(
+                    rows, by, sp["mean"], sp["std"], label, spread_png, sp.get("title", ""), level
+                )
                 self.tracker.log_artifact(str(spread_png))
+            for name in self.figures:
+                figure_png = self.sweep_dir / f"{name}.png"
+                report_tasks.FIGURES[name](rows, by, facet, figure_png)
+                self.tracker.log_artifact(str(figure_png))
             if self.claims:
-                from orchestrator.report_physicsvae import CLAIMS
-
-                text += "\n## The paper's statements and ours\n\n" + CLAIMS[self.claims](rows, self.compare_by)
+                text += "\n## The paper's statements and ours\n\n" + claims_table(self.claims, rows, by, facet)
             if self.stages_table:
                 text += "\n## Stages shared by every point\n\n" + self.stages_table
             if self.paper:
@@ -238,12 +262,22 @@ def ensure_experiment(store: str, name: str) -> None:
         client.create_experiment(name, artifact_location=store_artifacts(store), tags=EXPERIMENT_TAGS)
 
 
-def child_results(children: list[dict[str, Any]], compare_by: str, metrics: list[str]) -> list[dict[str, Any]]:
-    """One row per child run: the compared parameter, the seed and the final metrics."""
+def claims_table(name: str, rows: list[dict[str, Any]], compare_by: str, facet_by: str | None) -> str:
+    """The paper's statements beside ours, from whichever registry holds `name` (the task tables read the facet)."""
+    if name in report_tasks.CLAIMS:
+        return report_tasks.CLAIMS[name](rows, compare_by, facet_by)
+    return report_physicsvae.CLAIMS[name](rows, compare_by)
+
+
+def child_results(
+    children: list[dict[str, Any]], compare_by: str, metrics: list[str], facet_by: str | None = None
+) -> list[dict[str, Any]]:
+    """One row per child run: the compared parameter, the facet (with facet_by), the seed and the final metrics."""
+    keys = [compare_by, facet_by, "seed"] if facet_by else [compare_by, "seed"]
     rows = []
     for child in children:
-        row = {compare_by: child["params"].get(compare_by), "seed": child["params"].get("seed")}
+        row = {k: child["params"].get(k) for k in keys}
         row.update({k: child["metrics"].get(k) for k in metrics})
         row["run_id"] = child["run_id"]
         rows.append(row)
-    return sorted(rows, key=lambda r: (str(r[compare_by]), str(r["seed"])))
+    return sorted(rows, key=lambda r: tuple(str(r[k]) for k in keys))
