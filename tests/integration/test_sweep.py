@@ -1,8 +1,9 @@
-"""`+experiment=ablation_prior` at smoke size: a parent run with a child per prior and the comparison."""
+"""Sweep presets at smoke size: a parent run with a child per point and the comparison (prior, sigma, gp)."""
 
 from __future__ import annotations
 
 import json
+import math
 import subprocess
 import sys
 from pathlib import Path
@@ -40,11 +41,19 @@ def test_ablation_prior_makes_a_parent_run_with_three_children_and_a_figure(tmp_
     children = client.search_runs(
         [parent.info.experiment_id], filter_string=f"tags.mlflow.parentRunId = '{parent.info.run_id}'"
     )
-    assert sorted(c.data.params["algo.vae.prior"] for c in children) == ["conditional", "learned", "standard_normal"]
-    assert all("eval/time_until_fall_mean" in c.data.metrics for c in children)
+    # Each point is a heading task on its own skill stage (that prior, that seed), whose evaluation it carries.
+    priors = ["conditional", "learned", "standard_normal"]
+    assert sorted(c.data.params["algo.task.skill_prior"] for c in children) == priors
+    assert all({"eval/task_return", "skill/random_sampling_fell"} <= c.data.metrics.keys() for c in children)
+    skills = {c.data.tags["upstream.skill"] for c in children}
+    assert len(skills) == 3
+    assert sorted(client.get_run(r).data.params["algo.vae.prior"] for r in skills) == priors
+    nc = next(client.get_run(r) for r in skills if client.get_run(r).data.params["algo.vae.prior"] == "standard_normal")
+    assert nc.data.params["algo.vae.posterior_std"] == "1.0"  # VAE-NC
     artifacts = {a.path for a in client.list_artifacts(parent.info.run_id)}
-    assert {"comparison.png", "comparison.md", "comparison.json"} <= artifacts
-    assert "| conditional | 1 |" in (sweep_dir / "comparison.md").read_text()
+    assert {"comparison.png", "comparison.md", "comparison.json", "curves.png", "skill_stage.png"} <= artifacts
+    text = (sweep_dir / "comparison.md").read_text()
+    assert "| conditional | 1 |" in text and "VAE-NC falls more in random sampling" in text
 
 
 @pytest.mark.slow
@@ -61,8 +70,9 @@ def test_parallel_sweep_logs_through_a_local_tracking_server(tmp_path):
     children = client.search_runs(
         [parent.info.experiment_id], filter_string=f"tags.mlflow.parentRunId = '{parent.info.run_id}'"
     )
-    assert sorted(c.data.params["algo.vae.prior"] for c in children) == ["conditional", "learned", "standard_normal"]
-    assert all(c.info.status == "FINISHED" and "eval/tracking_error_mean" in c.data.metrics for c in children)
+    priors = ["conditional", "learned", "standard_normal"]
+    assert sorted(c.data.params["algo.task.skill_prior"] for c in children) == priors
+    assert all(c.info.status == "FINISHED" and "skill/tracking_error_mean" in c.data.metrics for c in children)
     spans = sorted((c.info.start_time, c.info.end_time) for c in children)
     assert spans[1][0] < spans[0][1], "the first two points should have run at the same time"
     uploaded = {p.name for p in (sweep_dir / "mlartifacts").rglob("*")}
@@ -93,3 +103,60 @@ def test_ablation_gp_at_smoke_scale_compares_four_penalties_with_curves_and_the_
     table = (sweep_dir / "comparison.md").read_text()
     assert "| 40.0 | 1 |" in table and "pose error after DTW (m)" in table and "walk 0.030 m" in table
     assert "final episode return" in table  # the learning curves' summary per point
+
+
+@pytest.mark.slow
+def test_ablation_sigma_at_smoke_scale_shares_one_skill_stage_and_plots_success_against_style(tmp_path):
+    sweep_dir = tmp_path / "sweep"
+    command = [sys.executable, "-m", "orchestrator", "+experiment=ablation_sigma", "scale=smoke", "progress=false"]
+    proc = subprocess.run(
+        command + [f"hydra.sweep.dir={sweep_dir}"], cwd=ROOT, capture_output=True, text=True, timeout=600
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    info = json.loads((sweep_dir / "sweep.json").read_text())
+    client = MlflowClient(info["uri"])
+    parent = client.get_run(info["parent_run_id"])
+    children = client.search_runs(
+        [parent.info.experiment_id], filter_string=f"tags.mlflow.parentRunId = '{parent.info.run_id}'"
+    )
+    points = sorted((c.data.params["terrain.kind"], float(c.data.params["algo.task.sigma"])) for c in children)
+    assert points == [(t, s) for t in ("flat", "rough") for s in (0.0, 0.1, 0.5, 1.0)]
+    assert len({c.data.tags["upstream.skill"] for c in children}) == 1  # one skill stage for every point
+    for c in children:  # the helper's deviation is bounded by sigma, and zero without it
+        sigma, style = float(c.data.params["algo.task.sigma"]), c.data.metrics["eval/style_deviation_deg"]
+        assert style == 0.0 if sigma == 0 else 0.0 < style <= math.degrees(sigma)
+    artifacts = {a.path for a in client.list_artifacts(parent.info.run_id)}
+    assert {"comparison.md", "success_style.png", "curves.png"} <= artifacts
+    text = (sweep_dir / "comparison.md").read_text()
+    assert "| rough | 1.0 | 1 |" in text and "rough terrain needs the helper" in text
+
+
+@pytest.mark.slow
+def test_ablation_prior_pulse_runs_table3s_first_and_last_rows_as_configurations(tmp_path):
+    sweep_dir = tmp_path / "sweep"
+    command = [sys.executable, "-m", "orchestrator", "+experiment=ablation_prior_pulse", "scale=smoke"]
+    proc = subprocess.run(
+        command + ["progress=false", f"hydra.sweep.dir={sweep_dir}"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    info = json.loads((sweep_dir / "sweep.json").read_text())
+    client = MlflowClient(info["uri"])
+    parent = client.get_run(info["parent_run_id"])
+    children = client.search_runs(
+        [parent.info.experiment_id], filter_string=f"tags.mlflow.parentRunId = '{parent.info.run_id}'"
+    )
+    rows = {}
+    for c in children:
+        skill = client.get_run(c.data.tags["upstream.skill"]).data.params
+        rows[c.data.params["algo.task.skill_prior"]] = (
+            skill["algo.vae.prior"],
+            skill["algo.pulse.prior_action"],
+            float(skill["algo.vae.lambda_regu"]),
+        )
+        assert c.data.params["algo.task.task"] == "vr" and "eval/task_success" in c.data.metrics
+    assert rows == {"standard_normal": ("standard_normal", "False", 0.0), "learned": ("learned", "True", 0.005)}
+    assert "93.4 %" in (sweep_dir / "comparison.md").read_text()

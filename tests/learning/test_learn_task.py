@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 import torch
 
 from workers.learners.task import TaskBatch, TaskConfig, TaskLearner
@@ -51,3 +52,41 @@ def test_task_learner_lowers_heading_loss(trajectories, world_model, vae_runs):
     # Measured: task 2.26 -> 1.94, heading 0.67 -> 0.58 rad. With σ = 0.1, w_z = 20: 2.27 -> 2.17.
     assert after["task"] < 0.9 * before["task"]
     assert after["heading"] < 0.9 * before["heading"]
+
+
+@pytest.mark.slow
+def test_model_based_heading_lowers_the_heading_error_in_the_simulator(character, walk_run, world_model, vae_runs):
+    """ControlVAE §4.2 end to end: the task policy collects in the simulator (B_g), learns only through the frozen
+    world model, and is judged in the simulator, from fixed starts with fixed goals, before and after."""
+    from workers.learners.task import GoalBuffer
+    from workers.rollout import RolloutWorker
+    from workers.task_eval import evaluate_task_policy
+    from workers.task_policy import TaskRolloutPolicy
+
+    torch.manual_seed(0)
+    vae, _ = vae_runs("conditional")
+    skill = {"config": vae.config, "module": vae.vae.state_dict(), "prior_action": True}
+    config = TaskConfig(task="heading", hidden=(128, 128), sigma=0.5, w_z=1.0, batch_size=64, lr=1e-3, optimizer="adam")
+    learner = TaskLearner(vae.vae, world_model.model, 28, config)
+    worker = RolloutWorker(character, walk_run, 16, TaskRolloutPolicy(15, 28, config, 30.0), seed=0)
+    worker.policy.configure({"skill": skill})
+    judge = TaskRolloutPolicy(15, 28, config, 30.0)
+    judge.configure({"skill": skill})
+
+    def heading_error() -> float:
+        judge.set_weights(learner.get_weights())
+        return evaluate_task_policy(judge, character, walk_run, 32, 4.0, seed=123)["terms"]["heading"]
+
+    buffer, rng = GoalBuffer(4096), np.random.default_rng(0)
+    before = heading_error()
+    for _ in range(60):  # 60 collections of 16 x 16 states, 8 updates after each
+        worker.set_weights(learner.get_weights())
+        traj = worker.collect(16)
+        buffer.add(traj.states, traj.extras["goal"])
+        for _ in range(8):
+            learner.update(buffer.sample(config.batch_size, config.rollout_steps, rng))
+    after = heading_error()
+    print(f"heading error in the simulator: {before:.3f} -> {after:.3f} rad")
+    # Measured: 1.651 -> 1.514 rad (seeded, deterministic). The goals are uniform over all directions and the test's
+    # VAE saw two forward clips for 300 updates, so the first seconds of every episode are a turn it barely has.
+    assert after < 0.95 * before

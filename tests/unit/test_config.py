@@ -157,3 +157,26 @@ def test_stage_overrides_reach_the_stages_above_and_bad_ones_name_the_need():
     assert stages.config_hash(cfg) == stages.config_hash(validate(composed("algo=physicsvae")))  # hashed above
     with pytest.raises(ConfigError, match=r"algo.needs.expert \(tracker algo.loop.iterationz=3\): Key 'iterationz'"):
         stages.upstream_config(demos, "tracker algo.loop.iterationz=3", "expert")
+
+
+def test_the_task_presets_name_their_skill_stages():
+    """ablation_prior: a skill stage per prior and seed; ablation_prior_pulse: PULSE Table 3's first and last
+    rows as pulse stages; ablation_sigma: one flat-ground controlvae stage for every sigma and terrain."""
+    prior = validate(composed("+experiment=ablation_prior", "algo.task.skill_prior=standard_normal", "seed=2"))
+    assert prior.algo.needs == {"skill": "controlvae algo.vae.prior=standard_normal seed=2"}
+    first = validate(composed("+experiment=ablation_prior_pulse", "pulse_row=first", "seed=1"))
+    assert first.algo.task.skill_prior == "standard_normal" and first.algo.task.task == "vr"
+    assert first.algo.needs["skill"] == (
+        "pulse algo.vae.prior=standard_normal algo.pulse.prior_action=false algo.vae.lambda_regu=0 seed=1"
+    )
+    full = validate(composed("+experiment=ablation_prior_pulse"))
+    assert full.algo.task.skill_prior == "learned" and full.algo.needs["skill"].startswith(
+        "pulse algo.vae.prior=learned"
+    )
+    sigma = validate(composed("+experiment=ablation_sigma", "terrain.kind=rough", "algo.task.sigma=0.5"))
+    assert sigma.algo.needs == {"skill": "controlvae"} and sigma.terrain.kind == "rough"
+    assert sigma.algo.task.trainer == "ppo" and sigma.algo.task.task == "point_goal"
+    with pytest.raises(ConfigError, match="algo.task.trainer"):
+        validate(composed("algo=task", "algo.task.trainer=mpc"))
+    with pytest.raises(ConfigError, match="terrain.kind"):
+        validate(composed("algo=task", "terrain.kind=sand"))
