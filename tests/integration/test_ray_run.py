@@ -131,3 +131,23 @@ def test_the_physicsvae_and_pulse_stages_run_on_ray_actors(smoke, tmp_path):
     assert by_algo["demos"][0].data.metrics["demos/episodes"] == 2  # one clip, two rollouts at smoke scale
     assert "eval/time_until_fall_mean" in by_algo["physicsvae"][0].data.metrics
     assert "eval/success_rate" in by_algo["pulse"][0].data.metrics
+
+
+def test_a_task_stage_runs_on_ray_with_either_trainer(smoke, tmp_path):
+    """algo=task on Ray actors: the skill stage, then the model-based trainer (learner-task) and PPO (learner-ppo),
+    whose workers receive the frozen skill model through `configure` and whose actors read it from the store."""
+    from mlflow.tracking import MlflowClient
+
+    from orchestrator.build import run
+
+    uri = f"sqlite:///{tmp_path / 'store.db'}"
+    for trainer in ("model", "ppo"):
+        cfg = smoke("algo=task", "runtime=ray", f"algo.task.trainer={trainer}", f"tracking.uri={uri}", name=trainer)
+        run(cfg)
+    client = MlflowClient(uri)
+    runs = client.search_runs([e.experiment_id for e in client.search_experiments()])
+    tasks = [r for r in runs if r.data.tags.get("algo") == "task"]
+    assert len(tasks) == 2 and len([r for r in runs if r.data.tags.get("algo") == "controlvae"]) == 1
+    for r in tasks:
+        assert r.info.status == "FINISHED"
+        assert {"eval/task_return", "rollout/task_reward", "skill/tracking_error_mean"} <= r.data.metrics.keys()
