@@ -1,6 +1,6 @@
 """The task learner (`learner-task` of `algo=task`) and how a skill stage's frozen networks are read.
 
-`skill_model` reads a skill stage (controlvae, physicsvae or pulse) from its run:
+`skill_model` reads a skill stage (a run with a VAE controller: controlvae, physicsvae or pulse):
 its VAE config and decoder/prior weights, whether a task acts as a residual on its
 prior's mean (PULSE's `prior_action`; always for the others), and, for the
 model-based trainer, the world model to learn through (ControlVAE's own; PhysicsVAE's
@@ -24,16 +24,15 @@ from workers.models.world_model import WorldModel
 from workers.replay import Trajectory
 from workers.task_policy import skill_controller
 
-SKILLS = ("controlvae", "physicsvae", "pulse")
-
 
 def skill_model(up: Upstream, world_model: bool) -> dict[str, Any]:
     """{"name", "config": VAEConfig, "module", "prior_action", and with `world_model`: "world_model":
-    (WorldModelConfig, state dict)} of the skill stage `up`; a StageError naming it if it is not one."""
+    (WorldModelConfig, state dict)} of the skill stage `up`: a run with a VAE controller (controlvae,
+    physicsvae, pulse); a StageError naming it if it is not one."""
     cfg = up.config()
     name = cfg.algo.name
-    if name not in SKILLS or cfg.algo.vae is None:
-        raise StageError(f"{up.describe()}: a {name} run is not a skill model (expected one of {', '.join(SKILLS)})")
+    if cfg.algo.vae is None:
+        raise StageError(f"{up.describe()}: a {name} run is not a skill model (it has no VAE controller)")
     state = up.checkpoint()
     vae = state.get("vae")
     if not isinstance(vae, dict):
@@ -41,7 +40,8 @@ def skill_model(up: Upstream, world_model: bool) -> dict[str, Any]:
     module = vae["learner"]["module"] if "learner" in vae else vae.get("module")
     if module is None:
         raise StageError(f"{up.describe()}: its checkpoint's vae state has no weights")
-    prior_action = bool(cfg.algo.pulse.prior_action) if name == "pulse" and cfg.algo.pulse is not None else True
+    # PULSE's prior-action switch (Table 3); the other skill models' tasks always act on the prior's mean.
+    prior_action = bool(cfg.algo.pulse.prior_action) if cfg.algo.pulse is not None else True
     out = {"name": name, "config": cfg.algo.vae, "module": module, "prior_action": prior_action}
     if world_model:
         out["world_model"] = _world_model(up, cfg, state)
@@ -49,20 +49,16 @@ def skill_model(up: Upstream, world_model: bool) -> dict[str, Any]:
 
 
 def _world_model(up: Upstream, cfg: Config, state: dict[str, Any]) -> tuple[Any, dict[str, Any]]:
-    if cfg.algo.name == "controlvae" and "world_model" in state:
+    """The skill stage's own world model (ControlVAE), else that of its world_model stage (PhysicsVAE's layer)."""
+    if "world_model" in state and cfg.algo.world_model is not None:
         return cfg.algo.world_model, state["world_model"]["module"]
-    if cfg.algo.name == "physicsvae" and "world_model" in up.lineage:
+    if "world_model" in up.lineage:
         from mlflow.tracking import MlflowClient
 
         from orchestrator.stages import _existing
 
-        layer = _existing(
-            MlflowClient(up.uri),
-            "skill.world_model",
-            up.lineage["world_model"],
-            up.uri,
-            up.cache.parent / "skill.world_model",
-        )
+        cache = up.cache.parent / f"{up.role}.world_model"
+        layer = _existing(MlflowClient(up.uri), f"{up.role}.world_model", up.lineage["world_model"], up.uri, cache)
         return layer.config().algo.world_model, layer_state(layer)
     raise StageError(
         f"{up.describe()}: a {cfg.algo.name} skill model has no world model to learn through; use algo.task.trainer=ppo"

@@ -122,6 +122,15 @@ class Trainer:
             self.worker_settings_versions[w] = 0
             self.restarts = -1  # recount now
 
+    def took_collections(self, key: str, infos: list[dict[str, Any]]) -> None:
+        """Component `key` took one collection from each worker, in order, each summarised with its
+        `incarnation` (popped) and the weights' `version` it was collected with: a component or worker
+        that restarted is recovered, and the restart count refreshed."""
+        for w, info in enumerate(infos):
+            self.check_alive(key, info.pop("incarnation"))
+            self.worker_came_back(w, info["version"])
+        self.worker_restarts()
+
     def worker_restarts(self) -> int:
         if self.restarts < 0 or self.state.iteration % 10 == 0:  # the runtime's count costs ~15 ms a worker on Ray
             self.restarts = sum(self.rt.restarts(w) for w in self.workers)

@@ -70,10 +70,7 @@ class Pulse(Method):
         loop, vae = cfg.algo.loop, cfg.algo.vae
         t0 = time.perf_counter()
         infos = rt.get([rt.call(h["replay"], "add_trajectory", f) for f in self.pending])
-        for w, info in enumerate(infos):
-            t.check_alive("replay", info.pop("incarnation"))
-            t.worker_came_back(w, info["version"])
-        t.worker_restarts()
+        t.took_collections("replay", infos)
         collected = sum(i["transitions"] for i in infos)
         self.pending = t.collect(loop.collect_steps, loop.staleness)
         metrics: dict[str, float] = {}

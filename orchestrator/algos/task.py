@@ -86,10 +86,7 @@ class Task(Method):
         loop = cfg.algo.loop
         t0 = time.perf_counter()
         infos = rt.get([rt.call(h["task"], "add_trajectory", f) for f in self.pending])
-        for w, info in enumerate(infos):
-            t.check_alive("task", info.pop("incarnation"))
-            t.worker_came_back(w, info["version"])
-        t.worker_restarts()
+        t.took_collections("task", infos)
         collected = sum(i["transitions"] for i in infos)
         self.pending = t.collect(loop.collect_steps, loop.staleness)
         metrics: dict[str, float] = {}

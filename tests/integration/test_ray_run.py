@@ -142,7 +142,8 @@ def test_a_task_stage_runs_on_ray_with_either_trainer(smoke, tmp_path):
 
     uri = f"sqlite:///{tmp_path / 'store.db'}"
     for trainer in ("model", "ppo"):
-        cfg = smoke("algo=task", "runtime=ray", f"algo.task.trainer={trainer}", f"tracking.uri={uri}", name=trainer)
+        overrides = ("algo=task", "runtime=ray", f"algo.task.trainer={trainer}", "algo.loop.iterations=4")
+        cfg = smoke(*overrides, f"tracking.uri={uri}", name=trainer)
         run(cfg)
     client = MlflowClient(uri)
     runs = client.search_runs([e.experiment_id for e in client.search_experiments()])

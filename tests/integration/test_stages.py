@@ -17,26 +17,14 @@ import numpy as np
 import pytest
 import torch
 from mlflow.tracking import MlflowClient
+from stage_runs import runs_of, smoke_config
 
 from orchestrator import stages
 from orchestrator.algos.demos import load_demos
 from orchestrator.build import run
 from orchestrator.components_offline import OfflineWorldModelActor, PhysicsVAEActor
-from orchestrator.schema import Config, validate
 
 ROOT = Path(__file__).resolve().parents[2]
-
-
-def smoke_config(run_dir: Path, *overrides: str) -> Config:
-    """As the `smoke` fixture composes (tests/integration/conftest.py), for a module-scoped fixture."""
-    base = ["scale=smoke", "motion=walk", f"run_dir={run_dir}", "progress=false"]
-    return validate(stages.compose([*base, *overrides]))
-
-
-def runs_of(uri: str, algo: str) -> list:
-    client = MlflowClient(uri)
-    ids = [e.experiment_id for e in client.search_experiments()]
-    return client.search_runs(ids, filter_string=f"tags.algo = '{algo}'")
 
 
 @pytest.fixture(scope="module")

@@ -8,13 +8,14 @@ import sys
 from pathlib import Path
 
 import pytest
+import stage_runs
 import torch
-from mlflow.tracking import MlflowClient
+from stage_runs import runs_of
 
 from orchestrator import stages
 from orchestrator.build import run
 from orchestrator.components_task import skill_model
-from orchestrator.schema import Config, validate
+from orchestrator.schema import Config
 from orchestrator.stages import StageError
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -22,14 +23,7 @@ pytestmark = pytest.mark.slow  # a skill stage and three task runs: ~90 s
 
 
 def smoke_config(run_dir: Path, *overrides: str) -> Config:
-    base = ["scale=smoke", "motion=walk", f"run_dir={run_dir}", "progress=false", "algo=task"]
-    return validate(stages.compose([*base, *overrides]))
-
-
-def runs_of(uri: str, algo: str) -> list:
-    client = MlflowClient(uri)
-    ids = [e.experiment_id for e in client.search_experiments()]
-    return client.search_runs(ids, filter_string=f"tags.algo = '{algo}'")
+    return stage_runs.smoke_config(run_dir, "algo=task", *overrides)
 
 
 @pytest.fixture(scope="module")

@@ -1,0 +1,27 @@
+"""What the stage tests share: smoke configs composed outside a test's fixtures, and the runs of a store by method.
+
+Module-scoped fixtures (one pipeline trained per test module) cannot use the function-scoped `smoke`
+fixture of conftest.py, so they compose here, the same way.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from mlflow.tracking import MlflowClient
+
+from orchestrator import stages
+from orchestrator.schema import Config, validate
+
+
+def smoke_config(run_dir: Path, *overrides: str) -> Config:
+    """As the `smoke` fixture composes (tests/integration/conftest.py)."""
+    base = ["scale=smoke", "motion=walk", f"run_dir={run_dir}", "progress=false"]
+    return validate(stages.compose([*base, *overrides]))
+
+
+def runs_of(uri: str, algo: str) -> list:
+    """Every run of method `algo` in the store at `uri`, in any experiment."""
+    client = MlflowClient(uri)
+    ids = [e.experiment_id for e in client.search_experiments()]
+    return client.search_runs(ids, filter_string=f"tags.algo = '{algo}'")
