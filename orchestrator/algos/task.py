@@ -53,8 +53,9 @@ class Task(Method):
 
     def skill_payload(self) -> dict[str, Any]:
         """The frozen decoder and prior the workers and the evaluation run (downloaded once)."""
-        if self.skill is None:
-            self.skill = skill_model(self.upstream["skill"], world_model=False)
+        if self.skill is None:  # with the model-based trainer, a skill model without a world model fails here
+            model_based = self.cfg.algo.task.trainer == "model"
+            self.skill = skill_model(self.upstream["skill"], world_model=model_based)
         return self.skill
 
     def components(self) -> list[Component]:
