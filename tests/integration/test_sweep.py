@@ -7,6 +7,7 @@ import math
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 import pytest
 from mlflow.tracking import MlflowClient
@@ -14,33 +15,37 @@ from mlflow.tracking import MlflowClient
 ROOT = Path(__file__).resolve().parents[2]
 
 
+def run_preset(sweep_dir: Path, preset: str, *overrides: str) -> subprocess.CompletedProcess:
+    """`+experiment=<preset> scale=smoke` through the CLI, into `sweep_dir`; it must succeed."""
+    command = [sys.executable, "-m", "orchestrator", f"+experiment={preset}", "scale=smoke", "progress=false"]
+    command += [f"hydra.sweep.dir={sweep_dir}", *overrides]
+    proc = subprocess.run(command, cwd=ROOT, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return proc
+
+
 def run_sweep(sweep_dir: Path, *overrides: str) -> subprocess.CompletedProcess:
     """The prior ablation at smoke size, four iterations a point, through the CLI."""
-    command = [
-        sys.executable,
-        "-m",
-        "orchestrator",
-        "+experiment=ablation_prior",
-        "scale=smoke",
-        "motion=walk",
-        "algo.loop.iterations=4",
-    ]
-    command += ["progress=false", f"hydra.sweep.dir={sweep_dir}", *overrides]
-    return subprocess.run(command, cwd=ROOT, capture_output=True, text=True, timeout=600)
+    return run_preset(sweep_dir, "ablation_prior", "motion=walk", "algo.loop.iterations=4", *overrides)
+
+
+def parent_and_children(sweep_dir: Path, store: str = "uri") -> tuple[MlflowClient, Any, list]:
+    """The sweep's MLflow client (on sweep.json's `uri` or `store`), its parent run and the parent's children."""
+    info = json.loads((sweep_dir / "sweep.json").read_text())
+    client = MlflowClient(info[store])
+    parent = client.get_run(info["parent_run_id"])
+    children = client.search_runs(
+        [parent.info.experiment_id], filter_string=f"tags.mlflow.parentRunId = '{parent.info.run_id}'"
+    )
+    return client, parent, children
 
 
 @pytest.mark.slow
 def test_ablation_prior_makes_a_parent_run_with_three_children_and_a_figure(tmp_path):
     sweep_dir = tmp_path / "sweep"
-    proc = run_sweep(sweep_dir)
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    info = json.loads((sweep_dir / "sweep.json").read_text())
-    client = MlflowClient(info["uri"])
-    parent = client.get_run(info["parent_run_id"])
+    run_sweep(sweep_dir)
+    client, parent, children = parent_and_children(sweep_dir)
     assert parent.info.status == "FINISHED" and parent.data.tags["sweep_id"] == parent.info.run_id
-    children = client.search_runs(
-        [parent.info.experiment_id], filter_string=f"tags.mlflow.parentRunId = '{parent.info.run_id}'"
-    )
     # Each point is a heading task on its own skill stage (that prior, that seed), whose evaluation it carries.
     priors = ["conditional", "learned", "standard_normal"]
     assert sorted(c.data.params["algo.task.skill_prior"] for c in children) == priors
@@ -61,15 +66,10 @@ def test_parallel_sweep_logs_through_a_local_tracking_server(tmp_path):
     """hydra/launcher=joblib runs the points at once; they share one SQLite store through a server on 127.0.0.1."""
     sweep_dir = tmp_path / "sweep"
     proc = run_sweep(sweep_dir, "hydra/launcher=joblib", "hydra.launcher.n_jobs=2")
-    assert proc.returncode == 0, proc.stderr[-3000:]
     info = json.loads((sweep_dir / "sweep.json").read_text())
     assert info["uri"].startswith("http://127.0.0.1:") and info["store"].startswith("sqlite:///")
-    client = MlflowClient(info["store"])  # the server is gone; the store stays
-    parent = client.get_run(info["parent_run_id"])
+    client, parent, children = parent_and_children(sweep_dir, "store")  # the server is gone; the store stays
     assert parent.info.status == "FINISHED"
-    children = client.search_runs(
-        [parent.info.experiment_id], filter_string=f"tags.mlflow.parentRunId = '{parent.info.run_id}'"
-    )
     priors = ["conditional", "learned", "standard_normal"]
     assert sorted(c.data.params["algo.task.skill_prior"] for c in children) == priors
     assert all(c.info.status == "FINISHED" and "skill/tracking_error_mean" in c.data.metrics for c in children)
@@ -86,17 +86,8 @@ def test_parallel_sweep_logs_through_a_local_tracking_server(tmp_path):
 @pytest.mark.slow
 def test_ablation_gp_at_smoke_scale_compares_four_penalties_with_curves_and_the_paper(tmp_path):
     sweep_dir = tmp_path / "sweep"
-    command = [sys.executable, "-m", "orchestrator", "+experiment=ablation_gp", "scale=smoke", "progress=false"]
-    proc = subprocess.run(
-        command + [f"hydra.sweep.dir={sweep_dir}"], cwd=ROOT, capture_output=True, text=True, timeout=600
-    )
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    info = json.loads((sweep_dir / "sweep.json").read_text())
-    client = MlflowClient(info["uri"])
-    parent = client.get_run(info["parent_run_id"])
-    children = client.search_runs(
-        [parent.info.experiment_id], filter_string=f"tags.mlflow.parentRunId = '{parent.info.run_id}'"
-    )
+    run_preset(sweep_dir, "ablation_gp")
+    client, parent, children = parent_and_children(sweep_dir)
     assert sorted(float(c.data.params["algo.discriminator.w_gp"]) for c in children) == [0.0, 1.0, 10.0, 40.0]
     assert {c.data.params["algo.discriminator.loss"] for c in children} == {"lsgan"}
     assert {c.data.params["algo.discriminator.gp_on"] for c in children} == {"data"}
@@ -111,17 +102,8 @@ def test_ablation_gp_at_smoke_scale_compares_four_penalties_with_curves_and_the_
 @pytest.mark.slow
 def test_ablation_sigma_at_smoke_scale_shares_one_skill_stage_and_plots_success_against_style(tmp_path):
     sweep_dir = tmp_path / "sweep"
-    command = [sys.executable, "-m", "orchestrator", "+experiment=ablation_sigma", "scale=smoke", "progress=false"]
-    proc = subprocess.run(
-        command + [f"hydra.sweep.dir={sweep_dir}"], cwd=ROOT, capture_output=True, text=True, timeout=600
-    )
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    info = json.loads((sweep_dir / "sweep.json").read_text())
-    client = MlflowClient(info["uri"])
-    parent = client.get_run(info["parent_run_id"])
-    children = client.search_runs(
-        [parent.info.experiment_id], filter_string=f"tags.mlflow.parentRunId = '{parent.info.run_id}'"
-    )
+    run_preset(sweep_dir, "ablation_sigma")
+    client, parent, children = parent_and_children(sweep_dir)
     points = sorted((c.data.params["terrain.kind"], float(c.data.params["algo.task.sigma"])) for c in children)
     assert points == [(t, s) for t in ("flat", "rough") for s in (0.0, 0.1, 0.5, 1.0)]
     assert len({c.data.tags["upstream.skill"] for c in children}) == 1  # one skill stage for every point
@@ -137,21 +119,8 @@ def test_ablation_sigma_at_smoke_scale_shares_one_skill_stage_and_plots_success_
 @pytest.mark.slow
 def test_ablation_prior_pulse_runs_table3s_first_and_last_rows_as_configurations(tmp_path):
     sweep_dir = tmp_path / "sweep"
-    command = [sys.executable, "-m", "orchestrator", "+experiment=ablation_prior_pulse", "scale=smoke"]
-    proc = subprocess.run(
-        command + ["progress=false", f"hydra.sweep.dir={sweep_dir}"],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    info = json.loads((sweep_dir / "sweep.json").read_text())
-    client = MlflowClient(info["uri"])
-    parent = client.get_run(info["parent_run_id"])
-    children = client.search_runs(
-        [parent.info.experiment_id], filter_string=f"tags.mlflow.parentRunId = '{parent.info.run_id}'"
-    )
+    run_preset(sweep_dir, "ablation_prior_pulse")
+    client, parent, children = parent_and_children(sweep_dir)
     rows = {}
     for c in children:
         skill = client.get_run(c.data.tags["upstream.skill"]).data.params
