@@ -5,7 +5,16 @@ VENV ?= .venv
 BIN := $(VENV)/bin
 TORCH ?= torch==2.13.0
 
-.PHONY: setup run test test-all bench lint
+.PHONY: setup system-packages run test test-all bench lint
+
+# Debian packages the project uses beside Python: PostgreSQL's server (MLflow's backend store in
+# `make cluster-up`) and the GL libraries of MuJoCo's offscreen renderer (evaluation videos:
+# MUJOCO_GL=egl or osmesa). Needs root; elsewhere it prints the command to run.
+SYSTEM_PACKAGES := postgresql libosmesa6 libegl1 libgl1 libgles2
+system-packages:
+	@if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
+		apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends $(SYSTEM_PACKAGES); \
+	else echo "install as root: apt-get install $(SYSTEM_PACKAGES)"; fi
 
 setup:
 	$(PY) -m venv $(VENV)

@@ -75,6 +75,8 @@ class MotionConfig:
     mirror: bool = True
     # Processed-clip cache; null: ~/.cache/mocap-orchestrator/motion or $MOCAP_CACHE_DIR.
     cache_dir: str | None = None
+    # BVH import: source joint name -> our body name, added to (and overriding) the default map.
+    joint_map: dict[str, str] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         if not self.clips:
@@ -275,6 +277,8 @@ class RuntimeConfig:
     envs_per_worker: int = 16
     # Ray only: cluster address (null starts a local Ray for the run; "auto" or "ray://host:port" joins one).
     address: str | None = None
+    # Ray only: seconds to wait for `address` to answer before giving up with one line naming it.
+    connect_timeout_s: float = 20.0
     # Ray only: CPUs per rollout worker and per learner, GPUs per learner, actor restarts after a crash.
     worker_cpus: float = 1.0
     learner_cpus: float = 1.0
@@ -331,8 +335,18 @@ class EvalConfig:
     task_goals: int = 16
     task_seconds: float = 10.0
     task_goal_seed: int = 1234
+    # Videos (MP4, MuJoCo's offscreen renderer; MUJOCO_GL=egl or osmesa) logged at each evaluation:
+    # video_rollouts time-until-fall rollouts and one tracked clip beside its reference (a ghost),
+    # each of up to video_seconds, video_width x video_height pixels.
+    video: bool = True
+    video_rollouts: int = 2
+    video_seconds: float = 6.0
+    video_width: int = 480
+    video_height: int = 320
 
     def __post_init__(self) -> None:
+        if self.video_rollouts < 0 or self.video_seconds <= 0 or min(self.video_width, self.video_height) < 16:
+            raise ConfigError("eval.video_rollouts must be >= 0, eval.video_seconds positive, video size >= 16 px")
         for key in ("fall_rollouts", "random_rollouts", "random_steps"):
             if getattr(self, key) < 1:
                 raise ConfigError(f"eval.{key} must be at least 1, got {getattr(self, key)}")
