@@ -268,6 +268,9 @@ class AlgoConfig:
     needs: dict[str, str] = field(default_factory=dict)
 
 
+PLACEMENTS = ("PACK", "SPREAD", "STRICT_PACK", "STRICT_SPREAD")
+
+
 @dataclass
 class RuntimeConfig:
     # The backend's class: orchestrator.runtime.local.LocalRuntime or orchestrator.runtime.ray.RayRuntime.
@@ -279,6 +282,9 @@ class RuntimeConfig:
     address: str | None = None
     # Ray only: seconds to wait for `address` to answer before giving up with one line naming it.
     connect_timeout_s: float = 20.0
+    # Ray only: how the components' placement group is laid out over the nodes: PACK (as few nodes
+    # as fit), SPREAD (over as many as possible), STRICT_PACK or STRICT_SPREAD.
+    placement: str = "PACK"
     # Ray only: CPUs per rollout worker and per learner, GPUs per learner, actor restarts after a crash.
     worker_cpus: float = 1.0
     learner_cpus: float = 1.0
@@ -300,6 +306,8 @@ class RuntimeConfig:
             raise ConfigError(f"runtime.envs_per_worker must be at least 1, got {self.envs_per_worker}")
         if self.sim_threads < 1:
             raise ConfigError(f"runtime.sim_threads must be at least 1, got {self.sim_threads}")
+        if self.placement not in PLACEMENTS:
+            raise ConfigError(f"runtime.placement must be one of {PLACEMENTS}, got {self.placement!r}")
 
 
 @dataclass

@@ -31,11 +31,13 @@ class RayRuntime(Runtime):
         object_store_mb: int = 512,
         torch_threads: int = 1,
         placement_timeout_s: float = 120.0,
+        placement: str = "PACK",
         **_: Any,
     ):
         self.started = not ray.is_initialized()
         self.namespace = f"mocap-{uuid.uuid4().hex[:8]}"
         self.placement_timeout_s = placement_timeout_s
+        self.placement = placement
         env = {"env_vars": {"OMP_NUM_THREADS": str(torch_threads), "MKL_NUM_THREADS": str(torch_threads)}}
         self._init_kwargs: dict[str, Any] = {"namespace": self.namespace, "runtime_env": env, "log_to_driver": False}
         if address:
@@ -58,7 +60,7 @@ class RayRuntime(Runtime):
                 self._init_kwargs["num_cpus"] = max(os.cpu_count() or 1, int(need + 0.999))
             self.context = ray.init(**self._init_kwargs)
         specs = [{"CPU": b.cpus, **({"GPU": b.gpus} if b.gpus else {})} for b in bundles]
-        self.group = placement_group(specs, strategy="PACK")
+        self.group = placement_group(specs, strategy=self.placement)
         ready, _ = ray.wait([self.group.ready()], timeout=self.placement_timeout_s)
         if not ready:
             raise RuntimeError(
