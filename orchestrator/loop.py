@@ -197,7 +197,11 @@ class Trainer:
         self.method.start(self)
         bar = tqdm(total=loop.iterations, initial=self.state.iteration, disable=not cfg.progress, desc=cfg.algo.name)
         last: dict[str, float] = {}
+        deadline = time.monotonic() + loop.max_minutes * 60 if loop.max_minutes > 0 else float("inf")
         while self.state.iteration < loop.iterations:
+            if time.monotonic() >= deadline:
+                log.warning("algo.loop.max_minutes=%g reached at iteration %d", loop.max_minutes, self.state.iteration)
+                break
             metrics = self.step()
             i = self.state.iteration
             if loop.eval_every and i % loop.eval_every == 0 and i < loop.iterations:

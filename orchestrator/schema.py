@@ -126,6 +126,9 @@ class LoopConfig:
     checkpoint_every: int = 50
     # Iterations between evaluations (and at the end); 0: only at the end.
     eval_every: int = 0
+    # A budget in wall time as well: the run ends (evaluated and checkpointed as at its last
+    # iteration) once this many minutes have passed, if `iterations` have not ended it first; 0: none.
+    max_minutes: float = 0.0
     # Collection episodes end on a fall (a body other than the feet touching the ground) when true;
     # ControlVAE only ends them on a tracking failure (head 0.5 m off for 1 s) or at a length cap.
     end_on_fall: bool = True

@@ -43,8 +43,12 @@ class RayRuntime(Runtime):
         if address:
             self._init_kwargs["address"] = address
         else:
+            # "local": a new Ray for this run, even where `ray start` left a cluster running on this machine.
             self._init_kwargs.update(
-                include_dashboard=True, dashboard_host="127.0.0.1", object_store_memory=object_store_mb * 2**20
+                address="local",
+                include_dashboard=True,
+                dashboard_host="127.0.0.1",
+                object_store_memory=object_store_mb * 2**20,
             )
         self.context = None
         self.group = None
@@ -54,7 +58,7 @@ class RayRuntime(Runtime):
     def reserve(self, bundles: list[Resources]) -> None:
         """Start Ray if needed and reserve every component's resources at once (a placement group)."""
         if not ray.is_initialized():
-            if "address" not in self._init_kwargs:
+            if self._init_kwargs["address"] == "local":
                 # Logical CPUs: enough for every component even on a laptop with fewer cores.
                 need = sum(b.cpus for b in bundles)
                 self._init_kwargs["num_cpus"] = max(os.cpu_count() or 1, int(need + 0.999))
