@@ -20,6 +20,7 @@ from orchestrator.loop import Trainer
 from orchestrator.runtime.base import Runtime
 from orchestrator.schema import Config
 from orchestrator.stages import StageError, Upstream
+from orchestrator.summary import closing, where_to_watch
 from orchestrator.tracking.base import NoOpTracker, Tracker, flatten
 
 RUN_FILE = "run.json"
@@ -61,20 +62,6 @@ def build_tracker(
 def build_runtime(cfg: Config) -> Runtime:
     """The backend named by runtime._target_, given the runtime group's fields."""
     return instantiate(OmegaConf.structured(cfg.runtime), _convert_="all")
-
-
-def where_to_look(cfg: Config, tracker: Tracker, runtime: Runtime) -> str:
-    lines = []
-    if cfg.tracking.enabled:
-        uri = cfg.tracking.uri or f"sqlite:///{(Path(cfg.run_dir) / 'mlflow.db').resolve()}"
-        if uri.startswith("http"):
-            lines.append(f"MLflow: {uri} (run {tracker.run_id})")
-        else:
-            lines.append(f"MLflow UI: mlflow ui --backend-store-uri {uri} --host 127.0.0.1  (run {tracker.run_id})")
-    dashboard = runtime.dashboard_url()
-    lines.append(f"Ray dashboard: {dashboard}" if dashboard else "Ray dashboard: none (runtime=local)")
-    lines.append(f"Run directory: {cfg.run_dir}")
-    return "\n".join(lines)
 
 
 def hydra_record() -> list[Path]:
@@ -136,12 +123,13 @@ def run(
     status = "FAILED"
     try:
         trainer = Trainer(cfg, runtime, tracker, character, upstream)
+        _log(where_to_watch(cfg, tracker, runtime))
         if resume_from is not None:
             trainer.restore(resume_from)
             print(f"resumed from {resume_from} at iteration {trainer.state.iteration}", file=sys.stderr)
         summary = trainer.run()
         status = "FINISHED"
-        print(where_to_look(cfg, tracker, runtime))
+        print(closing(cfg, tracker, trainer.state.baseline, summary, trainer.model_uri), flush=True)
         return summary
     finally:
         tracker.close(status)

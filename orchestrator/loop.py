@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -28,6 +28,7 @@ from orchestrator.runtime.base import Resources, Runtime
 from orchestrator.schema import Config
 from orchestrator.stages import Upstream
 from orchestrator.tracking.base import Tracker
+from orchestrator.tracking.system import SystemMetrics
 from workers.learners.base import Weights
 from workers.sim.character import Character
 
@@ -40,6 +41,8 @@ class LoopState:
 
     iteration: int = 0
     samples: int = 0  # environment transitions collected (the metrics' step)
+    # The untrained policy's evaluation (`eval.at_start`): the closing summary's baseline.
+    baseline: dict[str, float] = field(default_factory=dict)
 
 
 class Trainer:
@@ -80,16 +83,48 @@ class Trainer:
         self.worker_settings_versions = [0] * len(self.workers)
         self.weights_version = -1
         self.weights_ref: Any = None
+        self.nonfinite_weights_skipped = 0  # weights refused by `publish` for holding NaN or inf
         self.restarts = 0
         # The stateful components' current lives; one that comes back from a crash is reloaded
         # from the last checkpoint (`check_alive`).
         self.incarnations: dict[str, str | None] = dict.fromkeys(self.handles)
         self.recoveries = 0
+        self.system: SystemMetrics | None = None  # started by `run`
+        self.model_uri: str | None = None  # the exported policy's MLflow model, after `run`
 
     # Shared machinery for the methods ----------------------------------------------
     def publish(self, weights: Weights) -> None:
-        """The policy's weights into the object store, once per version; the workers pick them up in `collect`."""
+        """The policy's weights into the object store, once per version; the workers pick them up in `collect`.
+
+        Weights holding a NaN or inf are never published: the workers keep the last good ones, and the
+        refusal is counted (`loop/nonfinite_weights_skipped`) and warned about once."""
+        import numpy as np
+        import torch
+
+        def finite(x: Any) -> bool:  # tensors and arrays anywhere in the (possibly nested) state
+            if isinstance(x, torch.Tensor):
+                return not x.is_floating_point() or bool(torch.isfinite(x).all())
+            if isinstance(x, np.ndarray):
+                return x.dtype.kind != "f" or bool(np.isfinite(x).all())
+            if isinstance(x, dict):
+                return all(finite(v) for v in x.values())
+            if isinstance(x, list | tuple):
+                return all(finite(v) for v in x)
+            return not isinstance(x, float) or bool(np.isfinite(x))
+
         if weights.version != self.weights_version:
+            if not finite(weights.state):
+                if self.weights_ref is None:
+                    raise RuntimeError(f"the first weights to publish (version {weights.version}) are not finite")
+                self.nonfinite_weights_skipped += 1
+                if self.nonfinite_weights_skipped == 1:
+                    log.warning(
+                        "weights version %d hold NaN or inf: not published; the workers keep version %d "
+                        "(counted in loop/nonfinite_weights_skipped)",
+                        weights.version,
+                        self.weights_version,
+                    )
+                return
             if weights.version < self.weights_version:  # the learner was rolled back: every worker refreshes
                 self.worker_versions = [-1] * len(self.workers)
             self.weights_ref = self.rt.put(weights)
@@ -162,6 +197,9 @@ class Trainer:
         metrics["rollout/policy_version"] = float(self.weights_version)
         metrics["rollout/worker_restarts"] = float(self.restarts)
         metrics["loop/recoveries"] = float(self.recoveries)
+        metrics["loop/nonfinite_weights_skipped"] = float(self.nonfinite_weights_skipped)
+        if self.system is not None:
+            metrics.update(self.system.take())
         return metrics
 
     # Checkpoints -------------------------------------------------------------------
@@ -192,9 +230,29 @@ class Trainer:
 
     # The run -----------------------------------------------------------------------
     def run(self) -> dict[str, float]:
-        cfg, loop = self.cfg, self.cfg.algo.loop
+        cfg = self.cfg
         self.worker_versions = [-1] * len(self.workers)
         self.method.start(self)
+        if cfg.eval.at_start and self.state.iteration == 0 and not self.state.baseline:
+            self.state.baseline = self.method.evaluate(self, final=False)
+            self.tracker.log_metrics(self.state.baseline, step=0)
+        self.system = None
+        if cfg.tracking.enabled and cfg.tracking.system_metrics_s > 0:
+            self.system = SystemMetrics(cfg.tracking.system_metrics_s)
+        try:
+            last = self._iterate()
+        finally:
+            if self.system is not None:
+                self.system.close()
+        self.method.finish(self)
+        final = self.method.evaluate(self, final=True)
+        self.tracker.log_metrics(final, step=self.state.samples)
+        self.save()
+        self.export_model()
+        return {**last, **final}
+
+    def _iterate(self) -> dict[str, float]:
+        cfg, loop = self.cfg, self.cfg.algo.loop
         bar = tqdm(total=loop.iterations, initial=self.state.iteration, disable=not cfg.progress, desc=cfg.algo.name)
         last: dict[str, float] = {}
         deadline = time.monotonic() + loop.max_minutes * 60 if loop.max_minutes > 0 else float("inf")
@@ -213,8 +271,18 @@ class Trainer:
             bar.set_postfix(samples=self.state.samples, **self.method.progress(metrics))
             last = metrics
         bar.close()
-        self.method.finish(self)
-        final = self.method.evaluate(self, final=True)
-        self.tracker.log_metrics(final, step=self.state.samples)
-        self.save()
-        return {**last, **final}
+        return last
+
+    def export_model(self) -> None:
+        """The trained policy as the run's MLflow model (orchestrator/tracking/model.py), when tracked."""
+        if not self.cfg.tracking.enabled or not self.cfg.tracking.log_model:
+            return
+        weights = self.method.policy_weights(self)
+        if weights is None:
+            return
+        from orchestrator.components import load_world
+        from orchestrator.tracking.model import deployable, log_policy
+
+        found = deployable(self.cfg, type(self.method), weights, *load_world(self.cfg))
+        if found is not None:
+            self.model_uri = log_policy(self.tracker, *found, Path(self.cfg.run_dir))

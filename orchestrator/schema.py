@@ -323,6 +323,10 @@ class TrackingConfig:
     experiment: str | None = None
     # Run name; null: made from the overrides.
     run_name: str | None = None
+    # Log the trained policy as an MLflow model at the end of the run (mlflow.pytorch.log_model).
+    log_model: bool = True
+    # Seconds between system metrics (CPU, memory, disk, network: MLflow's system/ metrics); 0: none.
+    system_metrics_s: float = 10.0
 
 
 @dataclass
@@ -346,6 +350,9 @@ class EvalConfig:
     task_goals: int = 16
     task_seconds: float = 10.0
     task_goal_seed: int = 1234
+    # Evaluate the untrained policy before the first iteration: the first point of the eval/ curves,
+    # and the baseline of the closing summary.
+    at_start: bool = True
     # Videos (MP4, MuJoCo's offscreen renderer; MUJOCO_GL=egl or osmesa) logged at each evaluation:
     # video_rollouts time-until-fall rollouts and one tracked clip beside its reference (a ghost),
     # each of up to video_seconds, video_width x video_height pixels.

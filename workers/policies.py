@@ -34,6 +34,7 @@ from workers.learners.base import Weights
 from workers.learners.vae import VAEConfig, build_controller
 from workers.models import body_state
 from workers.models.actor_critic import ActorCritic
+from workers.models.deploy import ActorMean, PriorMeanController
 from workers.rewards import imitation_observation
 from workers.sim.env import BatchedSim
 
@@ -80,6 +81,11 @@ class Policy:
 
     def episodes_reset(self, ids: np.ndarray) -> None:
         """Environments `ids` start new episodes."""
+
+    def deployable(self, sim: BatchedSim, bs: np.ndarray) -> tuple[torch.nn.Module, np.ndarray] | None:
+        """(The trained policy as a module from an input batch to deterministic actions, that input for
+        body states bs), for export (`workers.models.deploy`); None for a policy that is not exported."""
+        return None
 
     def state_dict(self) -> dict[str, Any]:
         return {}
@@ -129,6 +135,9 @@ class VAEPolicy(Policy):
     def episodes_reset(self, ids: np.ndarray) -> None:
         self.use_prior[ids] = self.rng.random(len(ids)) < self.prior_probability
 
+    def deployable(self, sim: BatchedSim, bs: np.ndarray) -> tuple[torch.nn.Module, np.ndarray]:
+        return PriorMeanController(self.controller), body_state.features(torch.from_numpy(bs)).numpy()
+
     def state_dict(self) -> dict[str, Any]:
         return {"use_prior": self.use_prior.copy()}
 
@@ -168,6 +177,9 @@ class GaussianPolicy(Policy):
         extras = {"obs": obs, "action": actions.numpy(), "log_prob": log_probs.numpy()}
         applied = actions.numpy() + self.base_action(sim) if self.residual else actions.numpy()
         return applied, extras
+
+    def deployable(self, sim: BatchedSim, bs: np.ndarray) -> tuple[torch.nn.Module, np.ndarray]:
+        return ActorMean(self.module), self.observe(sim, bs)
 
     @torch.no_grad()
     def mean_action(self, sim: BatchedSim, bs: np.ndarray) -> np.ndarray:

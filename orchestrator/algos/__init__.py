@@ -29,6 +29,7 @@ if TYPE_CHECKING:
     from orchestrator.loop import Trainer
     from orchestrator.schema import Config
     from orchestrator.stages import Upstream
+    from workers.learners.base import Weights
     from workers.policies import Policy
     from workers.rollout import Recorder
     from workers.sim.character import Character
@@ -108,6 +109,11 @@ class Method:
     def progress(self, metrics: dict[str, float]) -> dict[str, str]:
         """What the progress bar shows beside the sample count."""
         return {}
+
+    def policy_weights(self, t: Trainer) -> Weights | None:
+        """The weights of the policy `make_policy` builds, exported as the run's model at its end
+        (orchestrator/tracking/model.py); by default the last published, None when nothing was."""
+        return t.rt.get(t.weights_ref) if t.weights_ref is not None else None
 
     # The method's own counters, in checkpoints ------------------------------------
     def state_dict(self) -> dict[str, Any]:

@@ -21,6 +21,7 @@ from orchestrator.algos.demos import load_manifest
 from orchestrator.components import load_world
 from orchestrator.components_offline import OfflineWorldModelActor, PhysicsVAEActor
 from orchestrator.evaluate import evaluate_controller
+from workers.policies import VAEPolicy
 
 
 class Offline(Method):
@@ -94,6 +95,14 @@ class PhysicsVAE(Offline):
 
     def batch_size(self) -> int:
         return self.cfg.algo.vae.batch_size
+
+    @classmethod
+    def make_policy(cls, cfg, character) -> VAEPolicy:
+        """Not run by workers (the method is offline): the form its controller is exported in."""
+        return VAEPolicy(character.num_bodies, character.num_actions, cfg.algo.vae)
+
+    def policy_weights(self, t):
+        return t.rt.get(t.rt.call(t.handles["vae"], "get_weights"))
 
     def evaluate(self, t, final: bool) -> dict[str, float]:
         if self.world is None:

@@ -14,9 +14,11 @@ register()
 
 
 def smoke_config(run_dir: Path, *overrides: str) -> Config:
+    # Tests run single-process (runtime=local) unless they ask for Ray; `python -m orchestrator` defaults to Ray.
+    local = [] if any(o.startswith("runtime=") for o in overrides) else ["runtime=local"]
     with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
         cfg = compose(
-            "config", overrides=["scale=smoke", "motion=walk", f"run_dir={run_dir}", "progress=false", *overrides]
+            "config", overrides=["scale=smoke", "motion=walk", f"run_dir={run_dir}", "progress=false", *local, *overrides]
         )
     return validate(cfg)
 

@@ -4,11 +4,16 @@ from __future__ import annotations
 
 import json
 
+import mlflow
+import mlflow.pytorch
 import numpy as np
 import pytest
+import torch
 from mlflow.tracking import MlflowClient
 
 from orchestrator.build import run
+from workers.sim.character import Character
+from workers.sim.features import StateLayout
 
 
 def client_for(cfg) -> MlflowClient:
@@ -20,8 +25,8 @@ def run_id_of(cfg) -> str:
         return json.load(f)["run_id"]
 
 
-def test_smoke_run_leaves_a_complete_mlflow_run(smoke):
-    cfg = smoke()
+def test_smoke_run_leaves_a_complete_mlflow_run(smoke, capsys):
+    cfg = smoke("tracking.system_metrics_s=0.5")
     summary = run(cfg)
     assert np.isfinite(summary["eval/time_until_fall_mean"])
     client = client_for(cfg)
@@ -42,6 +47,24 @@ def test_smoke_run_leaves_a_complete_mlflow_run(smoke):
     history = client.get_metric_history(r.info.run_id, "throughput/samples_per_s")
     steps = [m.step for m in history]
     assert steps == sorted(steps) and steps[-1] == 12 * 2 * 8 * 16  # iterations x workers x envs x steps
+    # The untrained policy is evaluated first (step 0): the curves start there.
+    assert [m.step for m in client.get_metric_history(r.info.run_id, "eval/time_until_fall_mean")] == [0, steps[-1]]
+    # System metrics under MLflow's names (its UI's "System metrics" tab).
+    assert {"system/cpu_utilization_percentage", "system/system_memory_usage_megabytes"} <= keys
+    # The trained controller as an MLflow model that loads and acts: z at the prior's mean, so deterministic.
+    model_uri = r.data.tags["model_uri"]
+    mlflow.set_tracking_uri(f"sqlite:///{cfg.run_dir}/mlflow.db")
+    model = mlflow.pytorch.load_model(model_uri)
+    example = np.asarray(mlflow.models.Model.load(model_uri).load_input_example(), np.float32)
+    with torch.no_grad():
+        a, b = model(torch.from_numpy(example)), model(torch.from_numpy(example))
+    character = Character.load()
+    assert a.shape == (1, character.num_actions) and torch.equal(a, b) and torch.isfinite(a).all()
+    spec = mlflow.models.get_model_info(model_uri).signature.inputs.to_dict()[0]["tensor-spec"]
+    assert list(spec["shape"]) == [-1, StateLayout(character.num_bodies).dim]
+    # The closing summary: the table beside the untrained policy, and where to look.
+    out = capsys.readouterr().out
+    assert "untrained" in out and "time_until_fall_mean" in out and model_uri in out and "mlflow ui" in out
 
 
 def metric_values(cfg, keys):

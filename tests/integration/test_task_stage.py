@@ -76,6 +76,7 @@ def test_a_task_refuses_an_upstream_run_that_is_not_a_skill_model(task_run):
             "-m",
             "orchestrator",
             "algo=task",
+            "runtime=local",
             "scale=smoke",
             "motion=walk",
             "progress=false",

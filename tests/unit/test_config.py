@@ -56,7 +56,8 @@ def test_scales_set_the_budget_of_each_method():
 
 def test_defaults_are_the_laptop_run():
     cfg = validate(composed())
-    assert cfg.runtime._target_.endswith("LocalRuntime") and cfg.motion.mirror
+    # On a Ray started for the run (every core, the dashboard); runtime=local is the single-process mode.
+    assert cfg.runtime._target_.endswith("RayRuntime") and cfg.runtime.address is None and cfg.motion.mirror
     assert "walker/turn_left0" in cfg.motion.clips and cfg.algo.vae.prior == "conditional"
     assert list(cfg.algo.world_model.hidden) == [256, 256, 256]  # algo_scale/controlvae_laptop
     assert cfg.algo.ppo is None and cfg.algo.discriminator is None

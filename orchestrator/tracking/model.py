@@ -1,0 +1,79 @@
+"""The trained controller as an MLflow model: `mlflow.pytorch.log_model` with an input example and signature.
+
+The policy the rollout workers ran (`Method.make_policy` with the run's last weights) gives its
+deterministic form (`Policy.deployable`: the VAE controller with z at its prior's mean, or the PPO
+actor's mean), and an input example of one standing start from the first clip. Load it with
+`mlflow.pytorch.load_model(<model uri>)`; the run's `model_uri` tag holds the uri. A tracking store
+that cannot take the model (the server is away) leaves it saved in `<run_dir>/model` instead, with
+one warning; the run goes on.
+"""
+
+from __future__ import annotations
+
+import logging
+import shutil
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from orchestrator.schema import Config
+from orchestrator.tracking.base import Tracker
+from workers.learners.base import Weights
+from workers.models import body_state
+from workers.sim.env import BatchedSim
+
+log = logging.getLogger(__name__)
+
+MODEL_NAME = "controller"
+
+
+def deployable(
+    cfg: Config, method_cls, weights: Weights, character, library
+) -> tuple[torch.nn.Module, np.ndarray] | None:
+    """(module, input example [1, obs_dim]) of the method's policy with `weights`; None if it has no export."""
+    policy = method_cls.make_policy(cfg, character)
+    policy.set_weights(weights)
+    sim = BatchedSim(character, library, 1, method_cls.sim_config(cfg), seed=cfg.seed)
+    sim.reset(np.zeros(1, int), np.zeros(1, int), np.zeros(1, int))
+    found = policy.deployable(sim, body_state.pack(sim.kin_state()))
+    if found is None:
+        return None
+    module, example = found
+    return module.eval(), np.asarray(example, np.float32)
+
+
+def log_policy(tracker: Tracker, module: torch.nn.Module, example: np.ndarray, run_dir: Path) -> str | None:
+    """Log `module` as the run's MLflow model; its uri, or None when it was saved to `run_dir/model` instead."""
+    import mlflow
+    import mlflow.pytorch
+    from mlflow.models import infer_signature
+
+    uri = getattr(tracker, "uri", None)
+    if uri is None or tracker.run_id is None:
+        return None
+    with torch.no_grad():
+        output = module(torch.from_numpy(example)).numpy()
+    signature = infer_signature(example, output)
+    # Pinned rather than inferred: inference re-imports the whole environment (seconds) and drops +cpu anyway.
+    requirements = [f"torch=={torch.__version__.split('+')[0]}", f"mlflow=={mlflow.__version__}"]
+    # Pickled (not torch.export): the normalisers branch on their sample count, which export cannot trace.
+    kwargs = dict(
+        signature=signature, input_example=example, pip_requirements=requirements, serialization_format="pickle"
+    )
+    quiet = logging.getLogger("mlflow.pytorch")  # its warning about pickles, at every run
+    level = quiet.level
+    try:
+        quiet.setLevel(logging.ERROR)
+        mlflow.set_tracking_uri(uri)
+        info = mlflow.pytorch.log_model(module, name=MODEL_NAME, run_id=tracker.run_id, **kwargs)
+    except Exception as e:  # noqa: BLE001 - any store failure: keep the model on disk, the run goes on
+        where = run_dir / "model"
+        shutil.rmtree(where, ignore_errors=True)
+        mlflow.pytorch.save_model(module, str(where), **kwargs)
+        log.warning("model not logged to %s (%s); saved in %s", uri, type(e).__name__, where)
+        return None
+    finally:
+        quiet.setLevel(level)
+    tracker.set_tags({"model_uri": info.model_uri})
+    return info.model_uri
