@@ -1,8 +1,15 @@
-"""`python -m orchestrator [+experiment=NAME] [key=value ...] [-m]`: compose, validate, build, run."""
+"""`python -m orchestrator [+experiment=NAME] [key=value ...] [-m]`: compose, validate, check, build, run.
+
+Bad input ends the run with exit status 2 and one line on stderr naming the key, file or address:
+`config error: ...` for a config value (at composition), `error: ...` for input that the config names
+but that cannot be used (a malformed clip or character file, a checkpoint that does not fit, a Ray
+address where nothing answers: `orchestrator.preflight`), `stage error: ...` for an upstream stage.
+"""
 
 from __future__ import annotations
 
 import sys
+from typing import NoReturn
 
 import hydra
 from hydra.core.hydra_config import HydraConfig
@@ -35,8 +42,7 @@ def main(dcfg: DictConfig) -> float | None:
     try:
         cfg = validate(dcfg)
     except ConfigError as e:
-        print(f"config error: {e}", file=sys.stderr)
-        sys.exit(2)
+        _fail(f"config error: {e}")
     if cfg.tracking.run_name is None:
         cfg.tracking.run_name = _run_name(cfg)
     from orchestrator.build import run
@@ -47,14 +53,34 @@ def main(dcfg: DictConfig) -> float | None:
         # A point of a sweep: a child of the sweep's parent run, in the sweep's store.
         cfg.tracking.uri = cfg.tracking.uri or parent["uri"]
         cfg.tracking.experiment = parent["experiment"]
+    from orchestrator.checkpoint import CheckpointError
+    from orchestrator.preflight import InputError, check
     from orchestrator.stages import StageError
+    from workers.motion.errors import ClipError
+    from workers.sim.character import CharacterError
 
     try:
+        check(cfg)  # before anything is started or written
         summary = run(cfg, parent_run_id=parent["parent_run_id"] if parent else None)
-    except (StageError, ConfigError) as e:
-        print(f"stage error: {e}" if isinstance(e, StageError) else f"config error: {e}", file=sys.stderr)
-        sys.exit(2)
+    except StageError as e:
+        _fail(f"stage error: {e}")
+    except ConfigError as e:
+        _fail(f"config error: {e}")
+    except InputError as e:
+        _fail(f"error: {e}")
+    # What an upstream stage run here reads, which `check` did not see.
+    except ClipError as e:
+        _fail(f"error: clip {e}")
+    except CharacterError as e:
+        _fail(f"error: character {e}")
+    except CheckpointError as e:
+        _fail(f"error: checkpoint {e}")
     return summary.get("eval/time_until_fall_mean")
+
+
+def _fail(line: str) -> NoReturn:
+    print(line, file=sys.stderr)
+    sys.exit(2)
 
 
 if __name__ == "__main__":

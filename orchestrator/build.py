@@ -108,6 +108,10 @@ def run(
     run_file = run_dir / RUN_FILE
     resume_from = checkpoint.latest(run_dir / "checkpoints") if cfg.resume else None
     run_id = json.loads(run_file.read_text())["run_id"] if cfg.resume and run_file.exists() else None
+    if resume_from is not None:  # a checkpoint that does not fit is refused before the run is reopened
+        from orchestrator import preflight
+
+        preflight.resume_checkpoint(cfg, character)
     if cfg.resume and resume_from is None:
         print(f"resume: no checkpoint in {run_dir / 'checkpoints'}; starting from scratch", file=sys.stderr)
     tags = {"stage_hash": stage_hash, **stages.lineage_tags(upstream)}

@@ -2,9 +2,12 @@
 
 `check` loads a clip in any supported format (a bundled DeepMimic name such as
 `humanoid3d_walk` or `walker/turn_left0`, or a .txt/.json, .bvh or .npz path),
-validates it, and prints its frames, duration, rate, the lowest foot point over
-the clip and the largest joint speed. A malformed clip exits with status 1 and
-one line naming the file and the frame.
+validates it as a run does (`workers.motion.clip.validate_raw`: frame width, NaN,
+quaternions, times, and plausibility: the root within 1 km of the origin and 100 m
+of its start, no root faster than 30 m/s, no joint faster than 50 rad/s), and prints
+its frames, duration, rate, the lowest foot point over the clip and the largest
+joint speed. A malformed or implausible clip, or a directory, exits with status 1
+and one line naming the file and the frame.
 """
 
 from __future__ import annotations
@@ -12,6 +15,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from pathlib import Path
 
 import numpy as np
 
@@ -21,10 +25,10 @@ from workers.motion.formats import bundled_clip_names, load_raw
 from workers.sim.character import Character
 
 
-def check(name_or_path: str) -> dict:
+def check(name_or_path: str, joint_map: dict[str, str] | None = None) -> dict:
     """Validate one clip and summarise it; raises ClipError on bad data."""
     character = Character.load()
-    raw = load_raw(character, name_or_path)
+    raw = load_raw(character, name_or_path, joint_map=joint_map)
     n = raw.qpos.shape[0]
     if n < 2:
         raise ClipError(raw.source or name_or_path, "a clip needs at least two frames", 0 if n else None)
@@ -79,6 +83,7 @@ def main(argv: list[str] | None = None) -> int:
     p_check = sub.add_parser("check", help="validate a clip and print its summary")
     p_check.add_argument("clip", help="bundled clip name or path (.txt/.json, .bvh, .npz)")
     p_check.add_argument("--json", action="store_true", help="print JSON")
+    p_check.add_argument("--joint-map", help='BVH: {"source joint": "our body", ...} as JSON or a JSON file')
     sub.add_parser("list", help="list the bundled clips")
     args = parser.parse_args(argv)
 
@@ -86,12 +91,25 @@ def main(argv: list[str] | None = None) -> int:
         print("\n".join(bundled_clip_names()))
         return 0
     try:
-        report = check(args.clip)
+        report = check(args.clip, _joint_map(parser, args.joint_map))
     except ClipError as e:
         print(f"error: {e}", file=sys.stderr)
         return 1
     print(json.dumps(report, indent=2) if args.json else format_report(report))
     return 0
+
+
+def _joint_map(parser: argparse.ArgumentParser, text: str | None) -> dict[str, str] | None:
+    """--joint-map's JSON object, given inline or as a file."""
+    if not text:
+        return None
+    try:
+        value = json.loads(Path(text).read_text() if Path(text).is_file() else text)
+    except (OSError, ValueError) as e:
+        parser.error(f"--joint-map: neither a JSON object nor a JSON file ({e})")
+    if not isinstance(value, dict) or not all(isinstance(v, str) for v in value.values()):
+        parser.error('--joint-map: expected a JSON object {"source joint": "our body", ...}')
+    return value
 
 
 if __name__ == "__main__":

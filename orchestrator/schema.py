@@ -15,6 +15,7 @@ from typing import Any
 from hydra.core.config_store import ConfigStore
 from omegaconf import DictConfig, OmegaConf
 
+from orchestrator.tracking.uri import tracking_uri_error
 from workers.learners.discriminator import DiscriminatorConfig
 from workers.learners.ppo import PPOConfig
 from workers.learners.task import TaskConfig
@@ -24,6 +25,7 @@ from workers.motion.errors import ClipError
 from workers.motion.formats import resolve
 from workers.rewards import DEFAULT_WEIGHTS as IMITATION_WEIGHTS
 from workers.rewards import IMITATION_TERMS
+from workers.sim.character import file_problem
 from workers.sim.terrain import TerrainConfig
 
 LOCOMOTION = [
@@ -62,6 +64,8 @@ class CharacterConfig:
     self_collision: bool = False
 
     def __post_init__(self) -> None:
+        if self.xml is not None and (problem := file_problem(self.xml)):
+            raise ConfigError(f"character.xml: {self.xml}: {problem}")
         ratio = self.sim_hz / self.control_hz if self.control_hz > 0 else 0
         if self.control_hz <= 0 or ratio < 1 or abs(ratio - round(ratio)) > 1e-6:
             raise ConfigError(f"character.sim_hz ({self.sim_hz}) must be a whole multiple of control_hz")
@@ -327,6 +331,10 @@ class TrackingConfig:
     log_model: bool = True
     # Seconds between system metrics (CPU, memory, disk, network: MLflow's system/ metrics); 0: none.
     system_metrics_s: float = 10.0
+
+    def __post_init__(self) -> None:
+        if self.uri is not None and (problem := tracking_uri_error(self.uri)):
+            raise ConfigError(f"tracking.uri: {problem}")
 
 
 @dataclass

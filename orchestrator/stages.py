@@ -158,8 +158,8 @@ class Upstream:
         path = self.artifact(names[-1])
         try:
             return checkpoint.load(path)
-        except Exception as e:
-            raise StageError(f"{self.describe()}: artifact {names[-1]} is unreadable ({_short(e)})") from None
+        except checkpoint.CheckpointError as e:  # truncated, not a weights file, not a dict of states
+            raise StageError(f"{self.describe()}: artifact {names[-1]} ({path}): {e.message}") from None
 
     def metrics(self) -> dict[str, float]:
         from mlflow.tracking import MlflowClient

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import logging
 import os
+import socket
 import time
 import uuid
 from typing import Any
@@ -21,6 +22,52 @@ from orchestrator.runtime.base import Resources, Runtime
 
 log = logging.getLogger(__name__)
 
+RAY_CLIENT_PORT = 10001  # `ray://host` without a port
+
+
+class AddressError(ConnectionError):
+    """`runtime.address` names no Ray cluster that answers; the message names the address."""
+
+
+def check_address(address: str, timeout_s: float) -> None:
+    """AddressError unless something accepts a TCP connection at `address` within `timeout_s`.
+
+    `ray.init` itself retries an address where nothing answers for minutes; this probe says so at
+    once (connection refused) or after `timeout_s` (no route, a firewall). "auto" is looked up as
+    `ray.init` would (RAY_ADDRESS, then the cluster `ray start` left on this machine); "local" starts
+    a new Ray and is not probed. A port that answers but is no Ray is left to `ray.init`.
+    """
+    if address == "local":
+        return
+    key = f"runtime.address={address}"
+    target = address
+    if address == "auto":
+        from ray._private.services import get_ray_address_from_environment
+
+        try:
+            target = get_ray_address_from_environment("auto", None)
+        except Exception as e:  # a private helper: never let it be the error
+            log.debug("could not look up runtime.address=auto (%s)", e)
+            return
+        if not target:
+            raise AddressError(f"{key}: no running Ray cluster found (no RAY_ADDRESS, and `ray start` runs none here)")
+    scheme, _, rest = target.rpartition("://")
+    if scheme not in ("", "ray"):
+        raise AddressError(f"{key}: not a Ray address (host:port, ray://host:port or auto)")
+    host, _, port = rest.rpartition(":")
+    if not port.isdigit():
+        host, port = (rest, str(RAY_CLIENT_PORT)) if scheme == "ray" else (rest, "")
+    if not port or not host:
+        raise AddressError(f"{key}: no port (the head node's GCS port, 6379 by default: host:6379)")
+    host = host.strip("[]")
+    try:
+        socket.create_connection((host, int(port)), timeout=timeout_s).close()
+    except TimeoutError:
+        raise AddressError(f"{key}: nothing answered at {host}:{port} within {timeout_s:g} s") from None
+    except OSError as e:
+        reason = (e.strerror or type(e).__name__).lower()
+        raise AddressError(f"{key}: no Ray cluster at {host}:{port} ({reason}); is it up (`ray status`)?") from None
+
 
 class RayRuntime(Runtime):
     name = "ray"
@@ -32,9 +79,11 @@ class RayRuntime(Runtime):
         torch_threads: int = 1,
         placement_timeout_s: float = 120.0,
         placement: str = "PACK",
+        connect_timeout_s: float = 20.0,
         **_: Any,
     ):
         self.started = not ray.is_initialized()
+        self.connect_timeout_s = connect_timeout_s
         self.namespace = f"mocap-{uuid.uuid4().hex[:8]}"
         self.placement_timeout_s = placement_timeout_s
         self.placement = placement
@@ -62,6 +111,8 @@ class RayRuntime(Runtime):
                 # Logical CPUs: enough for every component even on a laptop with fewer cores.
                 need = sum(b.cpus for b in bundles)
                 self._init_kwargs["num_cpus"] = max(os.cpu_count() or 1, int(need + 0.999))
+            else:
+                check_address(self._init_kwargs["address"], self.connect_timeout_s)
             self.context = ray.init(**self._init_kwargs)
         specs = [{"CPU": b.cpus, **({"GPU": b.gpus} if b.gpus else {})} for b in bundles]
         self.group = placement_group(specs, strategy=self.placement)
@@ -115,7 +166,9 @@ class RayRuntime(Runtime):
         from ray.util.state.exception import RayStateApiException
 
         try:
-            state = get_actor(handle._actor_id.hex())
+            # The dashboard of this run's Ray by address: with several Ray instances on one machine
+            # (a cluster, tests) the state API cannot guess which.
+            state = get_actor(handle._actor_id.hex(), address=self.dashboard_url())
         except (RayStateApiException, ConnectionError) as e:
             if not self._warned_state_api:
                 log.warning("actor restart counts unavailable (%s); reporting 0", type(e).__name__)

@@ -132,6 +132,60 @@ def validate_raw(character: Character, raw: RawClip) -> None:
         raise ClipError(raw.source, "frame duration must be positive", int(np.argmax(steps <= 0)))
     if raw.loop and raw.qpos.shape[0] < 2:
         raise ClipError(raw.source, "a cyclic clip needs at least two frames")
+    check_plausible(character, raw)
+
+
+# ----------------------------------------------------------------------------
+# Plausibility: finite values that no recording of a person has
+# ----------------------------------------------------------------------------
+# Over every bundled clip (`python -m orchestrator.motion list`) at its source rate, the root stays
+# within 3 m of the origin and of its first frame, moves at most 5.3 m/s (humanoid3d_roll) and turns at
+# most 12.3 rad/s (humanoid3d_roll); the fastest joint turns at 30.5 rad/s (left shoulder,
+# humanoid3d_backflip, 16 Hz). The limits sit well beyond that and beyond what people do, so that only
+# broken data is refused: a root in the wrong unit or from a garbled column, a frame of another clip.
+MAX_ROOT_DISTANCE_M = 1000.0  # from the origin: a root kilometres away is a unit or parsing error
+MAX_ROOT_TRAVEL_M = 100.0  # from the clip's first frame: more than any capture volume (cut longer takes)
+MAX_ROOT_SPEED_M_S = 30.0  # between frames; sprinters peak near 12 m/s
+# Between frames, for every ball joint (the norm of its angular velocity), hinge and the root's rotation.
+# People reach about 40 rad/s at the elbow when throwing; only the shoulder's internal rotation in a
+# pitch (~120 rad/s for milliseconds) is faster, and a capture of it at 100 Hz or more would be refused.
+MAX_JOINT_SPEED_RAD_S = 50.0
+
+
+def check_plausible(character: Character, raw: RawClip) -> None:
+    """Raise ClipError naming the frame where the root is too far away, or the root or a joint moves
+    faster than any person (the limits above; speeds are finite differences between source frames)."""
+    if character.root_dofs:
+        root = raw.qpos[:, :3]
+        for limit, distance, what in (
+            (MAX_ROOT_DISTANCE_M, np.linalg.norm(root, axis=1), "from the origin"),
+            (MAX_ROOT_TRAVEL_M, np.linalg.norm(root - root[0], axis=1), "from its position in frame 0"),
+        ):
+            if (distance > limit).any():
+                frame = int(np.argmax(distance > limit))
+                raise ClipError(raw.source, f"root is {distance[frame]:.3g} m {what} (more than {limit:g} m)", frame)
+    if raw.qpos.shape[0] < 2:
+        return
+    qpos = normalize_quats(character, raw.qpos)
+    qvel = np.zeros((qpos.shape[0] - 1, character.model.nv))  # [T - 1, nv]: frame t to t + 1
+    for t, dt in enumerate(np.diff(raw.times)):
+        mujoco.mj_differentiatePos(character.model, qvel[t], dt, qpos[t], qpos[t + 1])
+    # (what, speed [T - 1], limit, unit) for the root's translation and rotation and every joint.
+    checks = []
+    if character.root_dofs:
+        checks.append(("root moves", np.linalg.norm(qvel[:, :3], axis=1), MAX_ROOT_SPEED_M_S, "m/s"))
+        checks.append(("root turns", np.linalg.norm(qvel[:, 3:6], axis=1), MAX_JOINT_SPEED_RAD_S, "rad/s"))
+    for name, dofs in zip(character.joint_names, character.joint_dof, strict=True):
+        checks.append((f"{name} turns", np.linalg.norm(qvel[:, dofs], axis=1), MAX_JOINT_SPEED_RAD_S, "rad/s"))
+    over = np.stack([speed > limit for _, speed, limit, _ in checks], axis=1)  # [T - 1, checks]
+    if over.any():
+        t, k = np.argwhere(over)[0]
+        what, speed, limit, unit = checks[k]
+        raise ClipError(
+            raw.source,
+            f"{what} at {speed[t]:.3g} {unit} from frame {t} (more than {limit:g} {unit})",
+            int(t) + 1,
+        )
 
 
 # ----------------------------------------------------------------------------

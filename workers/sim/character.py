@@ -19,6 +19,32 @@ from workers.sim import rotations as rot
 ASSET_DIR = Path(__file__).parent / "assets"
 HUMANOID_XML = ASSET_DIR / "humanoid.xml"
 
+# What the code addresses by name (clip formats, state features, falls, mirroring): a character file
+# must have these bodies and joints, of these types, with one actuator per actuated degree of freedom.
+SKELETON_BODIES = [
+    "root", "chest", "neck",
+    "right_shoulder", "right_elbow", "right_wrist", "left_shoulder", "left_elbow", "left_wrist",
+    "right_hip", "right_knee", "right_ankle", "left_hip", "left_knee", "left_ankle",
+]  # fmt: skip
+SKELETON_JOINTS = {
+    "chest": "ball", "neck": "ball",
+    "right_hip": "ball", "right_knee": "hinge", "right_ankle": "ball",
+    "right_shoulder": "ball", "right_elbow": "hinge",
+    "left_hip": "ball", "left_knee": "hinge", "left_ankle": "ball",
+    "left_shoulder": "ball", "left_elbow": "hinge",
+}  # fmt: skip
+SKELETON_GEOMS = ["floor", "right_ankle", "left_ankle"]  # the ground and the feet
+
+
+class CharacterError(ValueError):
+    """A character file that cannot be used: missing, not an MJCF, or not our humanoid's skeleton."""
+
+    def __init__(self, path: object, message: str):
+        self.path = str(path)
+        self.message = message
+        super().__init__(f"{self.path}: {message}")
+
+
 # Left/right counterparts; every name not listed is its own mirror.
 _MIRROR_PAIRS = [
     ("right_hip", "left_hip"),
@@ -120,7 +146,16 @@ class Character:
 
     @classmethod
     def load(cls, xml_path: str | Path = HUMANOID_XML, **build_kwargs) -> Character:
-        model = build_model(xml_path, **build_kwargs)
+        """The character of an MJCF file; CharacterError naming the file if it is missing, does not
+        compile, or is not our humanoid's skeleton (`SKELETON_*`)."""
+        path = Path(xml_path)
+        if problem := file_problem(path):
+            raise CharacterError(path, problem)
+        try:
+            model = build_model(xml_path, **build_kwargs)
+        except ValueError as e:  # MuJoCo's parser and compiler errors
+            raise CharacterError(path, f"not a loadable MJCF ({_one_line(e)})") from None
+        _check_skeleton(path, model, build_kwargs.get("fixed_root", False))
         body_names = [model.body(i).name for i in range(1, model.nbody)]
         joint_names, joint_types, joint_qpos, joint_dof, body_of_joint = [], [], [], [], []
         for j in range(model.njnt):
@@ -136,7 +171,10 @@ class Character:
             joint_dof.append(slice(da, da + nv))
             body_of_joint.append(model.jnt_bodyid[j] - 1)
         root_dofs = 6 if int(mujoco.mjtJoint.mjJNT_FREE) in model.jnt_type.tolist() else 0
-        _check_actuators(model, joint_names, joint_dof, root_dofs)
+        try:
+            _check_actuators(model, joint_names, joint_dof, root_dofs)
+        except ValueError as e:
+            raise CharacterError(path, str(e)) from None
         foot_names = ["right_ankle", "left_ankle"]
         return cls(
             model=model,
@@ -191,8 +229,52 @@ class Character:
         return action
 
 
+def file_problem(path: str | Path) -> str | None:
+    """Why `path` cannot be a character file before it is read (missing, a directory), or None."""
+    path = Path(path)
+    return None if path.is_file() else "is a directory, not an MJCF file" if path.is_dir() else "no such file"
+
+
+def _one_line(e: BaseException) -> str:
+    """MuJoCo's message on one line (its parser's spans several), at most 200 characters."""
+    text = " ".join(str(e).split())
+    return text[:200] if text else type(e).__name__
+
+
+def _check_skeleton(path: Path, model: mujoco.MjModel, fixed_root: bool) -> None:
+    """CharacterError unless `model` has the bodies, joints (of the right types) and geoms the code needs."""
+    kinds = {
+        int(mujoco.mjtJoint.mjJNT_FREE): "free",
+        int(mujoco.mjtJoint.mjJNT_BALL): "ball",
+        int(mujoco.mjtJoint.mjJNT_SLIDE): "slide",
+        int(mujoco.mjtJoint.mjJNT_HINGE): "hinge",
+    }
+    bodies = {model.body(i).name for i in range(model.nbody)}
+    joints = {model.joint(j).name: kinds[int(model.jnt_type[j])] for j in range(model.njnt)}
+    geoms = {model.geom(g).name for g in range(model.ngeom)}
+    wanted = dict(SKELETON_JOINTS) if fixed_root else {"root": "free", **SKELETON_JOINTS}
+    problems = []
+    for kind, names, have in (
+        ("body", SKELETON_BODIES, bodies),
+        ("joint", wanted, joints),
+        ("geom", SKELETON_GEOMS, geoms),
+    ):
+        missing = [n for n in names if n not in have]
+        if missing:
+            more = f" and {len(missing) - 4} more" if len(missing) > 5 else ""
+            problems.append(f"no {kind} " + ", ".join(missing[: 4 if more else 5]) + more)
+    problems += [f"joint {j} is {joints[j]}, not {k}" for j, k in wanted.items() if j in joints and joints[j] != k]
+    problems += [f"joint {j} is {k} (only ball and hinge joints)" for j, k in joints.items() if k == "slide"]
+    if problems:
+        raise CharacterError(
+            path, f"not the humanoid skeleton the code needs ({'; '.join(problems)}; see {HUMANOID_XML.name})"
+        )
+
+
 def _check_actuators(model: mujoco.MjModel, joint_names: list[str], joint_dof: list[slice], root_dofs: int) -> None:
-    """Actuator i must drive dof root_dofs + i, so that actions are in dof order."""
+    """One actuator per actuated dof, actuator i driving dof root_dofs + i, so that actions are in dof order."""
+    if model.nu != model.nv - root_dofs:
+        raise ValueError(f"{model.nu} actuators for {model.nv - root_dofs} actuated degrees of freedom (one each)")
     for i in range(model.nu):
         jid = model.actuator_trnid[i, 0]
         dofs = joint_dof[joint_names.index(model.joint(jid).name)]

@@ -32,8 +32,10 @@ def bundled_clip_names() -> list[str]:
 
 
 def resolve(name_or_path: str | Path) -> Path:
-    """A path for a bundled clip name or an existing file; ClipError otherwise."""
+    """A path for a bundled clip name or an existing file; ClipError otherwise (a directory too)."""
     p = Path(name_or_path)
+    if p.is_dir():
+        raise ClipError(name_or_path, "is a directory, not a clip file (.txt/.json, .bvh or .npz)")
     if p.suffix and p.exists():
         return p
     candidate = bundled_motion_dir() / f"{name_or_path}.txt"
@@ -47,7 +49,8 @@ def resolve(name_or_path: str | Path) -> Path:
     )
 
 
-def load_raw(character: Character, name_or_path: str | Path) -> RawClip:
+def load_raw(character: Character, name_or_path: str | Path, joint_map: dict[str, str] | None = None) -> RawClip:
+    """A clip as read from its file. joint_map: BVH source joint name -> our body (see formats.bvh)."""
     path = resolve(name_or_path)
     bundled = not Path(name_or_path).suffix
     name = str(name_or_path) if bundled else path.stem
@@ -63,5 +66,5 @@ def load_raw(character: Character, name_or_path: str | Path) -> RawClip:
     if suffix == ".bvh":
         from workers.motion.formats import bvh
 
-        return bvh.load(character, path, name)
+        return bvh.load(character, path, name, joint_map=joint_map)
     raise ClipError(path, f"unknown clip format {suffix!r} (expected .txt/.json, .bvh or .npz)")

@@ -55,6 +55,8 @@ def read_frames(path: Path) -> tuple[np.ndarray, bool]:
         raise ClipError(path, f"not valid JSON ({e.msg} at line {e.lineno})") from None
     except UnicodeDecodeError:
         raise ClipError(path, "not valid JSON (not text)") from None
+    except OSError as e:
+        raise ClipError(path, f"cannot be read ({e.strerror or type(e).__name__})") from None
     if not isinstance(doc, dict) or "Frames" not in doc:
         raise ClipError(path, 'no "Frames" list (not a DeepMimic clip)')
     frames = doc["Frames"]

@@ -20,6 +20,8 @@ from workers.sim.character import Character
 
 def load(character: Character, path: str | Path, name: str | None = None) -> RawClip:
     path = Path(path)
+    if not zipfile.is_zipfile(path):  # np.load would try it as a pickle, and say so
+        raise ClipError(path, "not a readable .npz (not a zip archive: truncated, or another kind of file)")
     try:
         with np.load(path, allow_pickle=False) as d:
             missing = [k for k in ("qpos", "fps") if k not in d]

@@ -1,0 +1,109 @@
+"""What a run reads, checked before anything starts: bad input is one line naming its file, key or address.
+
+`check(cfg)` runs after the config is validated and before `orchestrator.build.run`, that is before
+the tracker creates (or, to resume, reopens) an MLflow run, before Ray is started or joined, and before
+anything is written to the run directory, so that bad input leaves everything already saved as it was:
+
+- the character file is our humanoid's skeleton (`workers.sim.character`) and every clip loads and is
+  plausible (`workers.motion.clip.check_plausible`): the same checks as `python -m orchestrator.motion check`;
+- `tracking.uri` has a scheme MLflow knows (checked at composition too; a sweep point takes its parent's);
+- `runtime.address` answers within `runtime.connect_timeout_s` (runtime=ray);
+- with `resume=true`, the last checkpoint in the run directory is complete, a weights file, written by
+  this method, and fits this config's networks: its states are loaded into the method's components built
+  here (for methods without upstream stages; those that have them are checked when the trainer restores).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import torch
+
+from orchestrator import checkpoint
+from orchestrator.schema import Config, ConfigError
+from orchestrator.tracking.uri import tracking_uri_error
+from workers.motion.errors import ClipError
+from workers.sim.character import Character, CharacterError
+
+
+class InputError(RuntimeError):
+    """Input a run cannot use; the message is one line naming the file, key or address."""
+
+
+def check(cfg: Config) -> None:
+    """InputError (ConfigError for a config value) for the first input of `cfg` that a run cannot use."""
+    if cfg.tracking.enabled and cfg.tracking.uri:
+        problem = tracking_uri_error(cfg.tracking.uri)
+        if problem:
+            raise ConfigError(f"tracking.uri: {problem}")
+    character = world(cfg)
+    if cfg.runtime.address and cfg.runtime._target_.endswith("RayRuntime"):
+        from orchestrator.runtime.ray import AddressError, check_address
+
+        try:
+            check_address(cfg.runtime.address, cfg.runtime.connect_timeout_s)
+        except AddressError as e:
+            raise InputError(str(e)) from None
+    if cfg.resume:
+        resume_run(cfg)
+        resume_checkpoint(cfg, character)
+
+
+def world(cfg: Config) -> Character:
+    """The character and the motion library load (the library is built, and its clips cached, here)."""
+    from orchestrator.components import load_world
+
+    try:
+        character, _ = load_world(cfg)
+    except CharacterError as e:
+        raise InputError(f"character.xml={cfg.character.xml}: {e.message}") from None
+    except ClipError as e:
+        raise InputError(f"clip {e}") from None
+    return character
+
+
+def resume_run(cfg: Config) -> str | None:
+    """The MLflow run a resume continues (run_dir/run.json), or None; InputError if the file is unreadable."""
+    path = Path(cfg.run_dir) / "run.json"  # orchestrator.build.RUN_FILE
+    if not path.exists():
+        return None
+    try:
+        run_id = json.loads(path.read_text())["run_id"]
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, TypeError, KeyError):
+        run_id = False
+    if not (run_id is None or isinstance(run_id, str)):  # None: the run was not tracked
+        raise InputError(f'{path}: not a run file ({{"run_id": "<MLflow run id>"}}); resume=true reads it')
+    return run_id
+
+
+def resume_checkpoint(cfg: Config, character: Character) -> Path | None:
+    """The checkpoint a resume would start from, loaded into this config's components; InputError naming
+    the file and what is wrong (for a size mismatch, the tensor and both shapes). The file is only read."""
+    from orchestrator.algos import method_class
+    from orchestrator.loop import LoopState
+
+    path = checkpoint.latest(Path(cfg.run_dir) / "checkpoints")
+    if path is None:
+        return None
+    try:
+        state = checkpoint.load(path)
+        method = method_class(cfg.algo._target_)(cfg, character, None)
+        if method.needs:  # its components are built from upstream stages, resolved later
+            checkpoint.check_layout(path, state, [])
+            return path
+        components = method.components()
+        checkpoint.check_layout(path, state, [c.key for c in components])
+        try:
+            LoopState(**state["loop"])
+        except TypeError as e:
+            raise checkpoint.CheckpointError(path, f"loop: {e}") from None
+        # Built as the trainer builds them, without touching this process's torch threads or RNG.
+        threads = torch.get_num_threads()
+        with torch.random.fork_rng(devices=[]):
+            targets = {c.key: c.cls(*c.args, **c.kwargs) for c in components}
+        torch.set_num_threads(threads)
+        checkpoint.check_restore(path, state, {"method": method, **targets})
+    except checkpoint.CheckpointError as e:
+        raise InputError(f"checkpoint {e} (resume=true; the file is left as it is)") from None
+    return path

@@ -1,0 +1,26 @@
+"""Which tracking URIs MLflow can use, told without importing mlflow (the config schema asks at composition)."""
+
+from __future__ import annotations
+
+from importlib.metadata import entry_points
+from urllib.parse import urlparse
+
+# The schemes of MLflow's own tracking stores (a bare path is a file store); plug-ins add theirs under
+# the `mlflow.tracking_store` entry point. A database scheme may name its driver: postgresql+psycopg2.
+TRACKING_SCHEMES = (
+    "file", "sqlite", "postgresql", "mysql", "mssql", "http", "https", "databricks", "databricks-uc", "uc",
+)  # fmt: skip
+
+
+def tracking_uri_error(uri: str) -> str | None:
+    """Why MLflow cannot use `uri` as a tracking store (its scheme is unknown), or None."""
+    if uri in ("databricks", "databricks-uc", "uc"):
+        return None
+    scheme = urlparse(uri).scheme  # as MLflow reads it
+    if not scheme or scheme.split("+")[0] in TRACKING_SCHEMES:
+        return None
+    plugins = {e.name for e in entry_points(group="mlflow.tracking_store")}
+    if scheme in plugins:
+        return None
+    known = ", ".join(f"{s}:" for s in (*TRACKING_SCHEMES, *sorted(plugins)))
+    return f"MLflow has no tracking store for the scheme {scheme!r} of {uri!r} (a path, or one of {known})"
