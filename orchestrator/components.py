@@ -38,6 +38,7 @@ def load_world(cfg: Config) -> tuple[Character, MotionLibrary]:
         fps=cfg.character.control_hz,
         mirror=cfg.motion.mirror,
         cache_dir=cfg.motion.cache_dir,
+        joint_map=dict(cfg.motion.joint_map) or None,
     )
     return character, library
 

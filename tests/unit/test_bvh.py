@@ -8,9 +8,10 @@ import mujoco
 import numpy as np
 import pytest
 
-from workers.motion.clip import interpolate_qpos, normalize_quats, process
+from workers.motion.clip import RawClip, interpolate_qpos, normalize_quats, process, transform_qpos
 from workers.motion.errors import ClipError
 from workers.motion.formats import bvh, load_raw
+from workers.motion.formats.bvh_retarget import GROUND_PERCENTILE, lowest_points
 from workers.motion.formats.deepmimic import Y_TO_Z
 from workers.sim import rotations as rot
 from workers.sim.character import Character
@@ -148,14 +149,21 @@ def test_save_then_load_gives_the_same_clip(character, tmp_path, clip):
     assert text.startswith("HIERARCHY\nROOT root\n") and "JOINT left_ankle" in text and "End Site" in text
     back = load_raw(character, path)  # dispatches on the suffix
     assert back.name == clip and back.source == str(path) and not back.loop
-    assert_same_poses(character, raw.qpos, back.qpos)
+    # Put on the ground: moved up by what the clip's 5th percentile of its lowest point lies below 0
+    # (walk: 0.40 cm, run: 5.9 cm; the bundled run sinks into the floor).
+    lift = -np.percentile(lowest_points(character, normalize_quats(character, raw.qpos)), GROUND_PERCENTILE)
+    assert 0.003 < lift < 0.07
+    expected = raw.qpos.copy()
+    expected[:, 2] += lift
+    assert_same_poses(character, expected, back.qpos)
+    assert_same_poses(character, raw.qpos, bvh.load(character, path, ground=None).qpos)
     np.testing.assert_allclose(back.times, raw.times, rtol=0, atol=1e-9)
 
 
 def test_round_trip_body_positions_agree(character, walk, tmp_path):
     path = tmp_path / "walk.bvh"
     bvh.save(character, walk, path)
-    back = bvh.load(character, path, loop=True)
+    back = bvh.load(character, path, loop=True, ground=None)
     assert back.loop
     a, b = process(character, walk, 30), process(character, back, 30)
     assert a.xpos.shape == b.xpos.shape
@@ -165,28 +173,101 @@ def test_round_trip_body_positions_agree(character, walk, tmp_path):
 def test_scale_and_resampling(character, walk, tmp_path):
     path = tmp_path / "walk.bvh"
     bvh.save(character, walk, path, fps=60)
-    guessed = bvh.load(character, path)
-    explicit = bvh.load(character, path, scale=0.01)
+    guessed = bvh.load(character, path, ground=None)
+    explicit = bvh.load(character, path, scale=0.01, ground=None)
     assert len(guessed.times) == int(np.floor(walk.duration * 60 + 1e-6)) + 1
     np.testing.assert_allclose(np.diff(guessed.times), 1 / 60)
     np.testing.assert_allclose(guessed.qpos, explicit.qpos)
     assert_same_poses(character, interpolate_qpos(character, walk, guessed.times), guessed.qpos)
-    as_metres = bvh.load(character, path, scale=1.0)
+    as_metres = bvh.load(character, path, scale=1.0, ground=None)
     np.testing.assert_allclose(as_metres.qpos[:, :3], 100 * guessed.qpos[:, :3])
 
 
-def test_unmapped_joint_keeps_identity_with_a_warning(character, walk, tmp_path, caplog):
+def _renamed(text: str, old: str, new: str) -> str:
+    return text.replace(f"JOINT {old}\n", f"JOINT {new}\n").replace(f"ROOT {old}\n", f"ROOT {new}\n")
+
+
+def test_unmatched_joint_is_refused_and_joint_map_extends_the_conventions(character, walk, tmp_path):
+    """A knee without a source is one ClipError naming the file and body; a joint_map entry fixes it."""
+    good = tmp_path / "walk.bvh"
+    bvh.save(character, walk, good)
+    path = tmp_path / "renamed.bvh"
+    path.write_text(_renamed(good.read_text(), "left_knee", "Segment7"))
+    with pytest.raises(ClipError) as info:
+        bvh.load(character, path)
+    text = str(info.value)
+    assert "renamed.bvh" in text and "left_knee" in text and "joint_map" in text and "Segment7" in text
+    assert "right_knee" not in text.split("The file's joints")[0]
+    # The map adds to the conventions: only the renamed joint is named, the others still match.
+    back = bvh.load(character, path, joint_map={"segment7": "left_knee"}, ground=None)
+    assert_same_poses(character, walk.qpos, back.qpos)
+    # User entries win over the conventions, and their joints serve no other body.
+    joints = bvh.parse(good)[0]
+    swap = {"right_knee": "left_knee", "LEFT_KNEE": "right_knee"}
+    src = {b: joints[j].name for b, j in bvh.match_joints(good, joints, character.body_names, swap).items()}
+    assert src["left_knee"] == "right_knee" and src["right_knee"] == "left_knee" and src["left_hip"] == "left_hip"
+    src = bvh.match_joints(good, joints, character.body_names, {"chest": "neck"})
+    assert joints[src["neck"]].name == "chest" and "chest" not in src  # our chest: no spine joint left
+
+
+def test_a_missing_neck_only_warns(character, walk, tmp_path, caplog):
+    good = tmp_path / "walk.bvh"
+    bvh.save(character, walk, good)
+    path = tmp_path / "no_neck.bvh"
+    path.write_text(_renamed(good.read_text(), "neck", "Segment9"))
+    with caplog.at_level(logging.WARNING, logger=bvh.__name__):
+        back = bvh.load(character, path, ground=None)
+    assert "neck" in caplog.text and "identity" in caplog.text
+    neck = character.joint_qpos[character.joint_names.index("neck")]
+    np.testing.assert_array_equal(back.qpos[:, neck], np.tile([1.0, 0.0, 0.0, 0.0], (len(back.qpos), 1)))
+    expected = walk.qpos.copy()
+    expected[:, neck] = [1.0, 0.0, 0.0, 0.0]
+    assert_same_poses(character, expected, back.qpos)
+
+
+def test_grounding_ignores_the_files_height(character, walk, tmp_path):
+    """The same motion 20 cm higher or lower in the file imports to the same heights."""
     path = tmp_path / "walk.bvh"
     bvh.save(character, walk, path)
-    mapping = {n: n for n in character.body_names if n != "left_elbow"}
-    with caplog.at_level(logging.WARNING, logger=bvh.__name__):
-        back = bvh.load(character, path, joint_map=mapping)
-    assert "left_elbow" in caplog.text
-    elbow = character.joint_qpos[character.joint_names.index("left_elbow")]
-    assert np.all(back.qpos[:, elbow] == 0.0)
-    expected = walk.qpos.copy()
-    expected[:, elbow] = 0.0
-    assert_same_poses(character, expected, back.qpos)
+    base = bvh.load(character, path)
+    low = lowest_points(character, base.qpos)
+    assert abs(np.percentile(low, GROUND_PERCENTILE)) < 1e-9  # at GROUND_HEIGHT, 0 m
+    for dz in (0.2, -0.2):
+        moved = walk.qpos.copy()
+        moved[:, 2] += dz
+        bvh.save(character, RawClip(walk.name, moved, walk.times, False), path)
+        np.testing.assert_allclose(bvh.load(character, path).qpos, base.qpos, atol=1e-6)
+        np.testing.assert_allclose(bvh.load(character, path, ground=None).qpos[:, 2], moved[:, 2], atol=1e-6)
+    assert bvh.load(character, path, ground=0.05).qpos[:, 2] == pytest.approx(base.qpos[:, 2] + 0.05, abs=1e-9)
+
+
+def test_a_rest_frame_before_the_motion_is_dropped(character, walk, tmp_path, caplog):
+    """As the cgspeed CMU files: frame 0 is the skeleton's rest pose (all rotations zero), here facing
+    a quarter turn away from the walk that follows."""
+    turned = RawClip(walk.name, transform_qpos(walk.qpos, np.pi / 2, np.zeros(3)), walk.times, False)
+    path = tmp_path / "walk.bvh"
+    bvh.save(character, turned, path)
+    lines = path.read_text().splitlines()
+    first = next(i for i, line in enumerate(lines) if line.startswith("Frame Time")) + 1
+    values = lines[first].split()
+    rest = values[:3] + ["0"] * (len(values) - 3)
+    lines[first - 2] = f"Frames: {len(lines) - first + 1}"
+    path.write_text("\n".join([*lines[:first], " ".join(rest), *lines[first:]]) + "\n")
+    with caplog.at_level(logging.INFO, logger=bvh.__name__):
+        back = bvh.load(character, path, ground=None)
+    assert "frame 0" in caplog.text
+    assert_same_poses(character, turned.qpos, back.qpos)
+    # A clip that starts from rest and moves on smoothly keeps its first frame.
+    assert not bvh._starts_with_rest_frame(np.broadcast_to(np.eye(3), (40, 3, 3, 3)).copy())
+
+
+@pytest.mark.parametrize(
+    ("height", "unit"),
+    [(1.62, "metres"), (162.0, "centimetres"), (1780.0, "millimetres"), (62.2, "inches"), (25.7, "CMU units")],
+)
+def test_guess_scale_reads_the_unit_from_a_persons_height(height, unit):
+    """Rest heights of our skeleton, a Mixamo file, a mm export, 0005_Walking001 (inches), CMU 01_14."""
+    assert bvh.guess_scale(np.array([0.0, height])) == bvh.UNITS[unit]
 
 
 # ----------------------------------------------------------------------------
@@ -216,7 +297,7 @@ def test_renamed_skeleton_other_channel_order_in_centimetres(character, walk, wa
     glob = np.concatenate((glob, np.stack(extra, axis=1)), axis=1)[:, order]
     path = tmp_path / "lafan_style.bvh"
     write_bvh(path, skel, glob, walk.qpos[:, :3], walk.times[1], scale=100.0, newline="\r\n")
-    back = bvh.load(character, path)
+    back = bvh.load(character, path, ground=None)
     assert_same_poses(character, walk.qpos, back.qpos)
     np.testing.assert_allclose(back.times, walk.times, rtol=0, atol=1e-9)
 
@@ -232,7 +313,7 @@ def test_source_facing_another_way(character, walk, walk_globals, tmp_path, y_up
     glob = rot.mul(walk_globals, rot.conj(turn))
     path = tmp_path / "turned.bvh"
     write_bvh(path, skel, glob, walk.qpos[:, :3], walk.times[1], y_up=y_up)
-    back = bvh.load(character, path, up="y" if y_up else "z")
+    back = bvh.load(character, path, up="y" if y_up else "z", ground=None)
     assert_same_poses(character, walk.qpos, back.qpos)
 
 
@@ -253,7 +334,7 @@ def test_t_pose_source_is_retargeted(character, walk, walk_globals, tmp_path):
             glob[:, b] = rot.mul(walk_globals[:, b], rot.conj(corr))
     path = tmp_path / "t_pose.bvh"
     write_bvh(path, skel, glob, walk.qpos[:, :3], walk.times[1])
-    back = bvh.load(character, path)
+    back = bvh.load(character, path, ground=None)
     assert_same_poses(character, walk.qpos, back.qpos, rot_tol=1e-3)
 
 
@@ -303,11 +384,14 @@ def test_bad_file_names_file_and_frame(character, walk, tmp_path, case):
 
 
 def test_missing_root_mapping_and_unknown_target(character, walk, tmp_path):
-    path = tmp_path / "walk.bvh"
-    bvh.save(character, walk, path)
-    with pytest.raises(ClipError, match="walk.bvh.*root"):
-        bvh.load(character, path, joint_map={"chest": "chest"})
+    good = tmp_path / "walk.bvh"
+    bvh.save(character, walk, good)
+    path = tmp_path / "no_root.bvh"
+    path.write_text(_renamed(good.read_text(), "root", "Base"))
+    with pytest.raises(ClipError, match="no_root.bvh.*root"):
+        bvh.load(character, path)
+    assert_same_poses(character, walk.qpos, bvh.load(character, path, joint_map={"Base": "root"}, ground=None).qpos)
     with pytest.raises(ClipError, match="walk.bvh.*pelvis"):
-        bvh.load(character, path, joint_map={"root": "pelvis"})
+        bvh.load(character, good, joint_map={"root": "pelvis"})
     with pytest.raises(ClipError, match="nowhere.bvh"):
         bvh.load(character, tmp_path / "nowhere.bvh")

@@ -9,6 +9,7 @@ over); past the end of a one-shot clip they clamp to its last frame.
 from __future__ import annotations
 
 import hashlib
+import json
 import logging
 import os
 from collections.abc import Sequence
@@ -27,7 +28,7 @@ from workers.types import KinState
 
 log = logging.getLogger(__name__)
 
-CACHE_VERSION = "1"
+CACHE_VERSION = "2"  # 2: BVH imports grounded, matched by naming conventions
 _FRAME_FIELDS = ("qpos", "qvel", "xpos", "xquat", "lin_vel", "ang_vel")
 
 
@@ -70,13 +71,18 @@ class MotionLibrary:
         mirror: bool = False,
         cache_dir: str | Path | None = None,
         use_cache: bool = True,
+        joint_map: dict[str, str] | None = None,
     ) -> MotionLibrary:
-        """Load clips by bundled name or path, resample to fps, optionally add mirrored copies."""
+        """Load clips by bundled name or path, resample to fps, optionally add mirrored copies.
+
+        joint_map: for BVH files, source joint name -> our body, added to (and overriding) the
+        naming conventions of workers.motion.formats.bvh_names.
+        """
         out = []
         for item in clips:
-            out.append(load_clip(character, item, fps, False, cache_dir, use_cache))
+            out.append(load_clip(character, item, fps, False, cache_dir, use_cache, joint_map))
             if mirror:
-                out.append(load_clip(character, item, fps, True, cache_dir, use_cache))
+                out.append(load_clip(character, item, fps, True, cache_dir, use_cache, joint_map))
         return cls(character, out)
 
     @property
@@ -201,12 +207,13 @@ def load_clip(
     mirror: bool = False,
     cache_dir: str | Path | None = None,
     use_cache: bool = True,
+    joint_map: dict[str, str] | None = None,
 ) -> MotionClip:
-    """A processed clip, from the NPZ cache when the source, character and rate are unchanged."""
+    """A processed clip, from the NPZ cache when the source, character, rate and joint map are unchanged."""
     path = resolve(name_or_path)
-    key = hashlib.sha1(
-        b"|".join([path.read_bytes(), character.xml_hash.encode(), f"{fps:.6f}|{mirror}|{CACHE_VERSION}".encode()])
-    ).hexdigest()[:16]
+    mapping = json.dumps({str(k): str(v) for k, v in (joint_map or {}).items()}, sort_keys=True)
+    parts = [path.read_bytes(), character.xml_hash.encode(), f"{fps:.6f}|{mirror}|{CACHE_VERSION}".encode()]
+    key = hashlib.sha1(b"|".join(parts + ([mapping.encode()] if joint_map else []))).hexdigest()[:16]
     cache = Path(cache_dir) if cache_dir else default_cache_dir()
     cached = cache / f"{Path(str(name_or_path)).stem}-{key}.npz"
     if use_cache and cached.exists():
@@ -215,7 +222,7 @@ def load_clip(
                 return MotionClip.from_npz_dict(d)
         except Exception as e:  # a corrupt cache entry is rebuilt, never fatal
             log.warning("ignoring unreadable cache entry %s (%s)", cached, e)
-    raw: RawClip = load_raw(character, name_or_path)
+    raw: RawClip = load_raw(character, name_or_path, joint_map=joint_map or None)
     if mirror:
         raw = clip_mod.mirror_raw(character, raw)
     clip = clip_mod.process(character, raw, fps)

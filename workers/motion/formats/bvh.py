@@ -11,23 +11,37 @@ any whitespace, one frame a line). Rotation channels compose in the order listed
 (`Zrotation Xrotation Yrotation` is Rz Rx Ry); position channels replace their
 components of the OFFSET. It then retargets onto our character:
 
-* `joint_map` (default `DEFAULT_JOINT_MAP`, case-insensitive, a `namespace:`
-  prefix ignored) matches source joints to our bodies, the first in hierarchy
-  order where several match one body. Our root must be matched; our other joints
-  without a source keep the identity rotation.
+* Joints are matched to our bodies by the naming conventions of Mixamo, CMU, LaFAN1,
+  the mocap-bank/Biovision Collar-Shoulder-Elbow-Wrist and Hip-Knee-Ankle skeletons,
+  3ds Max bipeds, Blender and game rigs (`bvh_names`), then by the skeleton where the
+  names are ambiguous ("LeftShoulder" is the clavicle in Mixamo, the upper arm under a
+  "LeftCollar"). `joint_map` (source joint name -> our body) is applied first and
+  overrides the conventions for the bodies it names. Our root and every body driven by
+  a joint must find a source joint (else one ClipError listing them), except the neck
+  (a warning; it keeps the identity rotation).
 * Per body, G_ours = G_source C: the source joint's global orientation and a
   rest-pose correction C, the facing alignment F (our rest frame, spine up and hips
   left to right, onto the source's) then the smallest rotation taking our rest
   bone, turned by F, onto the source's. A bone goes to the first child (for the
-  source: the joint matched to it, across unmatched joints) or, for our leaves, to
-  the End Site (for the source: the mean of its children's offsets). Files from
-  `save` import with identity corrections. Hinges keep the twist about their axis.
-* The root position is the matched source joint's (metres, z-up), as is: a source
-  whose hips are higher or lower than ours is not rescaled.
+  source: the joint matched to it, across unmatched joints and past a zero-length
+  one such as CMU's Neck on Spine1), to the mean of the children where that child
+  has no source (for both skeletons), or, for our leaves, to the End Site (for the
+  source: the mean of its children's offsets). Files from `save` import with
+  identity corrections. Hinges keep the twist about their axis.
+* A first frame apart from the motion (a joint turning by over 45 degrees to the next
+  frame, and four times as far as the clip's frames do at the 95th percentile; the
+  cgspeed CMU conversion starts each file with its rest pose) is dropped.
+* The root position is the matched source joint's (metres, z-up), horizontally as is.
+  Vertically the clip is put on the ground (`ground`, default on): shifted so that the
+  5th percentile over the frames of the character's lowest point (in practice a foot)
+  is at the height where the bundled walks have it (`bvh_retarget.GROUND_HEIGHT`, 0 m;
+  they sit at -0.4 to +0.3 cm). Our legs are rarely the source's length (the
+  reference model's are 0.88 m, hip to sole), so without it the feet float or sink by
+  the difference over the whole clip. `ground=None` keeps the file's heights.
 
-`scale` (metres per file unit) defaults to a guess from the rest pose's height:
-up to 10 units metres, up to 400 centimetres (what `save` writes), beyond that
-millimetres. Files in inches or other units need an explicit `scale`.
+`scale` (metres per file unit) defaults to a guess from the rest pose's height: the
+unit of UNITS (metres, centimetres, millimetres, inches, CMU's 1/0.45 inch) that makes
+it closest to a person's 1.7 m. Other sizes or units need an explicit `scale`.
 """
 
 from __future__ import annotations
@@ -41,6 +55,8 @@ import numpy as np
 
 from workers.motion.clip import RawClip, interpolate_qpos, normalize_quats
 from workers.motion.errors import ClipError
+from workers.motion.formats.bvh_names import match_joints, refuse_unmatched, unmatched
+from workers.motion.formats.bvh_retarget import END_SITES, GROUND_HEIGHT, ground_shift, rest_corrections, tree
 from workers.motion.formats.deepmimic import Y_TO_Z
 from workers.sim import rotations as rot
 from workers.sim.character import Character
@@ -49,26 +65,13 @@ log = logging.getLogger(__name__)
 
 SAVE_UNITS_PER_METRE = 100.0  # `save` writes centimetres
 SAVE_ROTATION_ORDER = "ZXY"
-# End Sites of our leaf bodies in the body frame (z-up, metres): the top of the
-# head sphere, the far side of the hand spheres, the front bottom edge of the feet.
-END_SITES = {
-    "neck": (0.0, 0.0, 0.2775), "right_wrist": (0.0, 0.0, -0.04), "left_wrist": (0.0, 0.0, -0.04),
-    "right_ankle": (0.1335, 0.0, -0.05), "left_ankle": (0.1335, 0.0, -0.05),
-}  # fmt: skip
-# Source joint name (case-insensitive) -> our body. "LeftShoulder" is left out on
-# purpose: in LaFAN1, CMU and Mixamo it is the clavicle, and the upper arm is LeftArm.
-_LIMB_NAMES = {
-    "hip": ("UpLeg", "Thigh", "Hip"), "knee": ("Leg", "Shin", "Knee"), "ankle": ("Foot", "Ankle"),
-    "shoulder": ("Arm", "UpArm", "UpperArm"), "elbow": ("ForeArm", "LowArm", "LowerArm", "Elbow"),
-    "wrist": ("Hand", "Wrist"),
-}  # fmt: skip
-DEFAULT_JOINT_MAP: dict[str, str] = {
-    "root": "root", "chest": "chest", "neck": "neck", "Hips": "root", "Pelvis": "root",
-    "Spine": "chest", "Spine1": "chest", "Chest": "chest", "Neck": "neck", "Head": "neck",
-    **{f"{s}_{b}": f"{s}_{b}" for s in ("right", "left") for b in _LIMB_NAMES},
-    **{f"{s.title()}{n}": f"{s}_{b}" for s in ("right", "left") for b, v in _LIMB_NAMES.items() for n in v},
-}  # fmt: skip
-
+# Units a file may be in (metres per unit) and the height guess_scale expects of a person.
+UNITS = {"metres": 1.0, "centimetres": 0.01, "millimetres": 0.001, "inches": 0.0254, "CMU units": 0.0254 / 0.45}
+PERSON_HEIGHT = 1.7
+# A first frame from which some joint turns by more than this (radians) to the next, and by four
+# times the 95th percentile of the clip's largest turn a frame, is a pose put before the motion
+# (the cgspeed CMU conversion starts each file with its rest pose).
+REST_FRAME_JUMP = np.deg2rad(45.0)
 _AXES = {"X": 0, "Y": 1, "Z": 2}
 _CHANNELS = {f"{a}{kind}".lower(): f"{a}{kind}" for a in "XYZ" for kind in ("position", "rotation")}
 _POSITIONS = "Xposition Yposition Zposition"
@@ -107,12 +110,6 @@ def matrix_to_euler(m: np.ndarray, order: str) -> np.ndarray:
 
 
 # Export --------------------------------------------------------------------
-def _tree(character: Character) -> tuple[np.ndarray, list[list[int]]]:
-    """Parent of each body (-1 for the root) and the children of each body, in model order."""
-    parent = character.model.body_parentid[1:] - 1
-    return parent, [[c for c in range(1, len(parent)) if parent[c] == b] for b in range(len(parent))]
-
-
 def _uniform(character: Character, raw: RawClip, fps: float | None) -> tuple[np.ndarray, float]:
     """qpos at evenly spaced frames (1 / fps apart, by default the clip's mean step) and the frame time."""
     n, t = raw.qpos.shape[0], raw.times - raw.times[0]
@@ -131,7 +128,7 @@ def save(character: Character, raw: RawClip, path: str | Path, fps: float | None
     model = character.model
     qpos, dt = _uniform(character, raw, fps)
     qpos = normalize_quats(character, qpos)
-    parent, kids = _tree(character)
+    parent, kids = tree(character)
     joint_of_body = {int(b): j for j, b in enumerate(character.body_of_joint)}
     rotations = " ".join(f"{a}rotation" for a in SAVE_ROTATION_ORDER)
     lines, order = ["HIERARCHY"], []
@@ -305,77 +302,20 @@ def rest_positions(joints: list[Joint]) -> np.ndarray:
 
 
 def guess_scale(heights: np.ndarray) -> float:
-    """Metres per file unit from the rest pose's vertical extent: metres, centimetres or millimetres."""
+    """Metres per file unit from the rest pose's vertical extent: the UNITS entry closest to a person's height."""
     span = float(np.ptp(heights))
-    return 1.0 if span <= 10.0 else 0.01 if span <= 400.0 else 0.001
+    if span <= 0.0:
+        return 1.0
+    return min(UNITS.values(), key=lambda unit: abs(np.log(span * unit / PERSON_HEIGHT)))
 
 
-def match_joints(path: Path, joints: list[Joint], bodies: list[str], joint_map: dict | None) -> dict:
-    """Our body name -> index of its source joint (the first in hierarchy order that maps to it)."""
-    table = {k.lower(): v for k, v in (DEFAULT_JOINT_MAP if joint_map is None else joint_map).items()}
-    unknown = sorted(set(table.values()) - set(bodies))
-    if unknown:
-        raise ClipError(path, f"joint_map targets {unknown} are not bodies of the character {bodies}")
-    out: dict[str, int] = {}
-    for j, jt in enumerate(joints):
-        key = jt.name.lower()
-        body = None if jt.end_site else table.get(key, table.get(key.rsplit(":", 1)[-1]))
-        if body is not None and body not in out:
-            out[body] = j
-    return out
-
-
-def _swing(u: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """The smallest rotation (quaternion) taking direction u to direction v; identity if either is zero."""
-    nu, nv = np.linalg.norm(u), np.linalg.norm(v)
-    if nu < 1e-9 or nv < 1e-9:
-        return _IDENTITY
-    u, v = u / nu, v / nv
-    if u @ v < -1.0 + 1e-12:  # opposite: half a turn about any perpendicular axis
-        axis = np.cross(u, np.eye(3)[int(np.argmin(np.abs(u)))])
-        return np.concatenate(([0.0], axis / np.linalg.norm(axis)))
-    return rot.normalize(np.concatenate(([1.0 + u @ v], np.cross(u, v))))
-
-
-def rest_corrections(character: Character, joints: list[Joint], rest: np.ndarray, src: dict) -> dict:
-    """Body index -> quaternion C with G_ours = G_source C, for every mapped body (see the module doc).
-
-    rest: the source's rest positions [J, 3] in our axes (z-up); src: match_joints's answer.
-    """
-    names, (parent, kids) = character.body_names, _tree(character)
-    body_pos = character.model.body_pos[1:]
-    ours = np.zeros_like(body_pos)  # our rest positions (all body_quat are identity)
-    for b in range(len(names)):
-        ours[b] = body_pos[b] + (ours[parent[b]] if parent[b] >= 0 else 0.0)
-
-    def is_below(j: int, anc: int) -> bool:
-        while j >= 0 and j != anc:
-            j = joints[j].parent
-        return j == anc
-
-    def bones(b: int) -> tuple[np.ndarray, np.ndarray]:
-        """Our and the source's rest bone vectors for body b."""
-        s = src[names[b]]
-        if kids[b]:
-            child = src.get(names[kids[b][0]])
-            if child is not None and is_below(child, s):
-                return body_pos[kids[b][0]], rest[child] - rest[s]
-        mine = body_pos[kids[b][0]] if kids[b] else np.asarray(END_SITES.get(names[b], (0.0, 0.0, 0.0)))
-        direct = [j for j, jt in enumerate(joints) if jt.parent == s]
-        return mine, (rest[direct].mean(axis=0) - rest[s]) if direct else np.zeros(3)
-
-    facing = _IDENTITY  # turns our rest frame (spine up, hips left to right) onto the source's
-    if {"left_hip", "right_hip"} <= set(src):
-        (up_ours, up_src), lat_src = bones(0), rest[src["left_hip"]] - rest[src["right_hip"]]
-        tilt, axis = _swing(up_ours, up_src), up_src / max(np.linalg.norm(up_src), 1e-12)
-        lat = rot.rotate(tilt, ours[names.index("left_hip")] - ours[names.index("right_hip")])
-        yaw = np.arctan2(np.cross(lat, lat_src) @ axis, lat @ lat_src - (lat @ axis) * (lat_src @ axis))
-        facing = rot.mul(rot.from_expmap(yaw * axis), tilt)
-    out = {}
-    for b in (b for b, name in enumerate(names) if name in src):
-        mine, theirs = bones(b)
-        out[b] = rot.mul(_swing(rot.rotate(facing, mine), theirs), facing)
-    return out
+def _starts_with_rest_frame(g_mat: np.ndarray) -> bool:
+    """Whether frame 0 of global rotations [T, J, 3, 3] is a pose apart from the motion (REST_FRAME_JUMP)."""
+    if len(g_mat) < 3:
+        return False
+    cos = (np.einsum("tjab,tjab->tj", g_mat[:-1], g_mat[1:]) - 1.0) / 2.0  # trace(R_t^T R_t+1) = 1 + 2 cos
+    turn = np.arccos(np.clip(cos, -1.0, 1.0)).max(axis=1)  # [T - 1] largest turn of a joint
+    return bool(turn[0] > REST_FRAME_JUMP and turn[0] > 4.0 * np.percentile(turn[1:], 95))
 
 
 def load(
@@ -386,25 +326,40 @@ def load(
     scale: float | None = None,
     up: str = "y",
     loop: bool = False,
+    ground: float | None = GROUND_HEIGHT,
 ) -> RawClip:
     """Read a BVH file and retarget it onto our character (see the module doc).
 
-    joint_map: source joint name -> our body name (case-insensitive); replaces DEFAULT_JOINT_MAP.
+    joint_map: source joint name -> our body name (case-insensitive), added to (and overriding)
+      the naming conventions of `bvh_names`.
     scale: metres per file unit; guessed from the skeleton's height when None.
     up: "y" for the usual y-up files (x forward, z right), "z" for files in our axes.
+    ground: the height (m) for the clip's ground contact (see the module doc); None keeps the file's.
     """
     path = Path(path)
     if up not in ("y", "z"):
         raise ValueError(f"up must be 'y' or 'z', got {up!r}")
     axes = Y_TO_Z if up == "y" else np.eye(3)
     joints, frames, frame_time = parse(path)
+    g_mat, g_pos = forward_kinematics(joints, frames)
+    if _starts_with_rest_frame(g_mat):
+        log.info("%s: frame 0 is a pose put before the motion (as in the cgspeed CMU files); dropped", path)
+        frames, g_mat, g_pos = frames[1:], g_mat[1:], g_pos[1:]
     rest = rest_positions(joints) @ axes.T
-    scale = guess_scale(rest[:, 2]) if scale is None else scale
-    names, (parent, _) = character.body_names, _tree(character)
+    if scale is None:
+        scale = guess_scale(rest[:, 2])
+        unit = next(k for k, v in UNITS.items() if v == scale)
+        log.info("%s: read in %s (rest height %.4g units; pass scale= otherwise)", path, unit, np.ptp(rest[:, 2]))
+    names, (parent, _) = character.body_names, tree(character)
     src = match_joints(path, joints, names, joint_map)
     if names[0] not in src:
-        raise ClipError(path, f"no source joint maps to our {names[0]} (pass a joint_map)")
-    g_mat, g_pos = forward_kinematics(joints, frames)
+        raise ClipError(path, f"no source joint maps to our {names[0]} (name it with motion.joint_map)")
+    driven = [names[b] for b in sorted({int(b) for b in character.body_of_joint})]
+    essential, minor = unmatched(driven, src)
+    if essential:
+        refuse_unmatched(path, joints, essential)
+    for body in minor:
+        log.warning("%s: no source joint maps to %s; it keeps the identity rotation", path, body)
     g_quat = rot.from_matrix(axes @ g_mat @ axes.T)  # [T, J, 4] in our axes
     corr = rest_corrections(character, joints, rest, src)
 
@@ -420,8 +375,7 @@ def load(
         if j is None:
             continue
         sl = character.joint_qpos[j]
-        if body not in src:
-            log.warning("%s: no source joint maps to %s; it keeps the identity rotation", path, body)
+        if body not in src:  # a minor body (warned above)
             qpos[:, sl.start] = 1.0 if character.joint_types[j] == "ball" else 0.0
             continue
         local = rot.mul(rot.conj(pg), rot.mul(g_quat[:, src[body]], corr[b]))
@@ -435,4 +389,14 @@ def load(
         else:
             qpos[:, sl] = local
         glob[:, b] = rot.mul(pg, local)
+    if ground is not None and character.root_dofs:
+        shift = ground_shift(character, qpos, ground)
+        log.info("%s: put on the ground, root moved %+.1f cm", path, 100 * shift)
+        qpos[:, 2] += shift
     return RawClip(name or path.stem, qpos, np.arange(n) * frame_time, loop, source=str(path))
+
+
+__all__ = [
+    "END_SITES", "UNITS", "Joint", "euler_to_matrix", "forward_kinematics", "guess_scale", "load", "match_joints",
+    "matrix_to_euler", "parse", "rest_corrections", "rest_positions", "save",
+]  # fmt: skip
