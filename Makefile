@@ -9,8 +9,9 @@ TORCH ?= torch==2.13.0
 
 # Debian packages the project uses beside Python: PostgreSQL's server (MLflow's backend store in
 # `make cluster-up`) and the GL libraries of MuJoCo's offscreen renderer (evaluation videos:
-# MUJOCO_GL=egl or osmesa). Needs root; elsewhere it prints the command to run.
-SYSTEM_PACKAGES := postgresql libosmesa6 libegl1 libgl1 libgles2
+# MUJOCO_GL=egl or osmesa), and docker-compose to check docker/compose.yaml (no daemon needed).
+# Needs root; elsewhere it prints the command to run.
+SYSTEM_PACKAGES := postgresql libosmesa6 libegl1 libgl1 libgles2 docker-compose
 system-packages:
 	@if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
 		apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends $(SYSTEM_PACKAGES); \
@@ -37,3 +38,13 @@ bench:
 lint:
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
+
+# The cluster topology on this machine, no Docker: a Ray head and a Ray node (token authentication on),
+# PostgreSQL and an MLflow server on it; addresses in $(CLUSTER_DIR)/cluster.json. See docs/cluster.md.
+CLUSTER_DIR ?= .cluster
+.PHONY: cluster-up cluster-down
+cluster-up:
+	$(BIN)/python -m orchestrator.cluster up --state-dir $(CLUSTER_DIR)
+
+cluster-down:
+	$(BIN)/python -m orchestrator.cluster down --state-dir $(CLUSTER_DIR)

@@ -1,0 +1,269 @@
+"""The topology a lab runs, on one machine, without Docker: `python -m orchestrator.cluster up|down|status|env`.
+
+    python -m orchestrator.cluster up [--state-dir .cluster] [--json]   # or: make cluster-up
+    eval "$(python -m orchestrator.cluster env)"                         # the token and addresses, for clients
+    ray job submit -- python -m orchestrator runtime=ray runtime.address=auto tracking.uri=$MLFLOW_TRACKING_URI
+    python -m orchestrator.cluster down                                  # or: make cluster-down
+
+`up` starts, each in its own process session and each waited for until it answers:
+- a Ray head (`ray start --head`: GCS, dashboard and jobs API on 127.0.0.1, token authentication on, with
+  this cluster's own token in `<state-dir>/ray-auth-token`) and `--nodes` more Ray nodes joining it, each
+  with its own logical CPUs, its own ports and a Ray temp dir of its own (no clash with other Rays here);
+- PostgreSQL (initdb once into the state dir, pg_ctl on 127.0.0.1 at a free port) with a database `mlflow`;
+- `mlflow server` on that database, artifacts proxied into `<state-dir>/artifacts` (clients log to
+  `mlflow-artifacts:` through the server).
+The addresses go to stdout and to `<state-dir>/cluster.json`; logs to `<state-dir>/logs/`. `down` stops only
+what `up` recorded there (never `ray stop`, which would stop every Ray on the machine) and keeps the database
+and the artifacts for the next `up`. A service that does not come up stops everything started so far and exits
+with one line naming it and its log.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shlex
+import shutil
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from orchestrator import cluster_services as svc
+from orchestrator.cluster_procs import ClusterError, alive, http_ok
+
+STATE_FILE = "cluster.json"
+DEFAULT_STATE_DIR = ".cluster"
+
+
+def state_path(state_dir: Path) -> Path:
+    return state_dir / STATE_FILE
+
+
+def load_state(state_dir: Path) -> dict[str, Any] | None:
+    path = state_path(state_dir)
+    return json.loads(path.read_text()) if path.exists() else None
+
+
+def save_state(state: dict[str, Any]) -> None:
+    """Written after every service that comes up, so that `down` can stop a half-started cluster."""
+    path = state_path(Path(state["state_dir"]))
+    tmp = path.with_suffix(".tmp")
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    with os.fdopen(fd, "w") as f:
+        json.dump(state, f, indent=2)
+    tmp.replace(path)
+
+
+def client_env(state: dict[str, Any]) -> dict[str, str]:
+    """What a client of this cluster needs in its environment: Ray's token, the GCS (a driver's `ray.init("auto")`,
+    i.e. `runtime.address=auto`), the jobs API (`ray job submit`, `ray list actors`) and the tracking URI."""
+    env = {"RAY_AUTH_MODE": "token", "RAY_AUTH_TOKEN_PATH": state["ray"]["auth_token_path"]}
+    env["RAY_ADDRESS"] = state["ray"]["head"]["gcs_address"]
+    env["RAY_API_SERVER_ADDRESS"] = state["ray"]["head"]["dashboard_url"]
+    if state.get("mlflow"):
+        env["MLFLOW_TRACKING_URI"] = state["mlflow"]["uri"]
+    return env
+
+
+def summary(state: dict[str, Any]) -> dict[str, Any]:
+    """The addresses a user needs (no secrets: the token and the password stay in their files)."""
+    ray, pg, ml = state.get("ray") or {}, state.get("postgres") or {}, state.get("mlflow") or {}
+    head = ray.get("head") or {}
+    nodes = [{"node_id": head.get("node_id"), "cpus": head.get("num_cpus"), "head": True}]
+    nodes += [{"node_id": n.get("node_id"), "cpus": n.get("num_cpus"), "head": False} for n in ray.get("nodes", [])]
+    return {
+        "state_dir": state["state_dir"],
+        "ray_dashboard": head.get("dashboard_url"),
+        "ray_gcs_address": head.get("gcs_address"),
+        "ray_auth_token_path": ray.get("auth_token_path"),
+        "ray_nodes": nodes,
+        "mlflow_tracking_uri": ml.get("uri"),
+        "mlflow_artifacts": ml.get("artifacts"),
+        "postgres_uri": pg.get("uri"),
+        "postgres_password_file": pg.get("password_file"),
+        "logs": str(Path(state["state_dir"]) / "logs"),
+    }
+
+
+def print_summary(state: dict[str, Any], as_json: bool) -> None:
+    info = summary(state)
+    if as_json:
+        print(json.dumps(info, indent=2))
+        return
+    nodes = ", ".join(f"{'head' if n['head'] else 'node'} {n['cpus']} CPU" for n in info["ray_nodes"])
+    print(f"Ray dashboard   {info['ray_dashboard']}   (jobs: ray job submit --address {info['ray_dashboard']})")
+    print(f"Ray GCS         {info['ray_gcs_address']}   ({nodes}; token in {info['ray_auth_token_path']})")
+    print(f"MLflow          {info['mlflow_tracking_uri']}   (artifacts proxied into {info['mlflow_artifacts']})")
+    print(f"PostgreSQL      {info['postgres_uri']}   (password in {info['postgres_password_file']})")
+    print(f"State           {state_path(Path(info['state_dir']))}; logs in {info['logs']}")
+    env_command = f"python -m orchestrator.cluster env --state-dir {shlex.quote(info['state_dir'])}"
+    print(f'Clients         eval "$({env_command})"')
+
+
+def records(state: dict[str, Any]) -> list[tuple[str, dict[str, Any] | None]]:
+    """Every recorded process, in stopping order: MLflow, the joined Ray nodes, the Ray head."""
+    ray = state.get("ray") or {}
+    out: list[tuple[str, dict[str, Any] | None]] = [("MLflow server", state.get("mlflow"))]
+    out += [(f"Ray node {i}", n) for i, n in reversed(list(enumerate(ray.get("nodes", []), start=1)))]
+    out.append(("Ray head", ray.get("head")))
+    return out
+
+
+def running(state: dict[str, Any]) -> bool:
+    pg = state.get("postgres")
+    return any(alive(r) for _, r in records(state)) or bool(pg and svc.postgres_answers(pg))
+
+
+def up(state_dir: Path, head_cpus: int, node_cpus: int, nodes: int, store_mb: int, timeout_s: float) -> dict:
+    previous = load_state(state_dir)
+    if previous is not None and running(previous):
+        raise ClusterError(f"a cluster is already up from {state_path(state_dir)}; run `down` first")
+    if previous is not None:  # a stale record (processes gone, e.g. after a reboot): clear what it left
+        down(state_dir, quiet=True)
+    logs = state_dir / "logs"
+    logs.mkdir(parents=True, exist_ok=True)
+    temp_dir, temp_external = svc.ray_temp_dir(state_dir)
+    token_path = state_dir / "ray-auth-token"
+    svc.write_token(token_path)
+    state: dict[str, Any] = {"state_dir": str(state_dir), "started": time.time()}
+    state["ray"] = {"temp_dir": str(temp_dir), "temp_external": temp_external, "auth_token_path": str(token_path)}
+    save_state(state)
+
+    def register(*keys: str):
+        """Record a process in the state file as soon as it runs, so that `down` stops it even mid-start."""
+
+        def put(record: dict[str, Any]) -> None:
+            target = state
+            for key in keys[:-1]:
+                target = target[key]
+            if isinstance(target[keys[-1]], list):
+                target[keys[-1]].append(record)
+            else:
+                target[keys[-1]] = record
+            save_state(state)
+
+        return put
+
+    try:
+        env = svc.ray_env(token_path)
+        state["ray"].update(head=None, nodes=[])
+        head = svc.start_ray_head(temp_dir, logs, env, head_cpus, store_mb, timeout_s, register("ray", "head"))
+        for i in range(1, nodes + 1):
+            svc.start_ray_node(head, i, temp_dir, logs, env, node_cpus, store_mb, timeout_s, register("ray", "nodes"))
+        save_state(state)  # the node ids found while waiting
+        home, external = svc.pg_home(state_dir)
+        state["postgres"] = {"home": str(home), "external": external}  # removed by down if outside
+        save_state(state)
+        svc.start_postgres(state_dir, home, external, timeout_s, register("postgres"))
+        state["mlflow"] = None
+        svc.start_mlflow(state["postgres"], state_dir / "artifacts", logs, timeout_s, register("mlflow"))
+        save_state(state)
+    except BaseException:
+        down(state_dir, quiet=True)
+        raise
+    return state
+
+
+def down(state_dir: Path, quiet: bool = False) -> bool:
+    """Stop what `up` recorded in the state dir; False when nothing was recorded."""
+    state = load_state(state_dir)
+    if state is None:
+        return False
+    errors = []
+    for name, record in records(state):
+        if record is not None and alive(record) and not quiet:
+            print(f"stopping {name} (pid {record['pid']})")
+        try:
+            svc.stop(record)
+        except Exception as e:  # go on: the other services still have to stop
+            errors.append(f"{name}: {e}")
+    pg = state.get("postgres") or {}
+    try:
+        if pg.get("data_dir"):
+            if not quiet and (Path(pg["data_dir"]) / "postmaster.pid").exists():
+                print(f"stopping PostgreSQL ({pg['data_dir']})")
+            svc.stop_postgres(pg, state_dir / "logs")
+        elif pg.get("external"):
+            shutil.rmtree(pg["home"], ignore_errors=True)
+    except ClusterError as e:
+        errors.append(str(e))
+    ray = state.get("ray") or {}
+    if ray.get("temp_external"):
+        shutil.rmtree(ray["temp_dir"], ignore_errors=True)
+    state_path(state_dir).unlink(missing_ok=True)
+    if errors:
+        raise ClusterError("; ".join(errors))
+    return True
+
+
+def status(state_dir: Path) -> dict[str, Any]:
+    """Each service's state: up (its process runs and it answers) or down."""
+    state = load_state(state_dir)
+    if state is None:
+        raise ClusterError(f"no cluster recorded in {state_path(state_dir)}; run `up`")
+    token = Path(state["ray"]["auth_token_path"]).read_text()
+    services = {}
+    head = state["ray"].get("head")
+    try:
+        alive_nodes = svc._alive_nodes(head["dashboard_url"], token) if alive(head) else []
+    except OSError:
+        alive_nodes = []
+    ids = {n["node_id"] for n in alive_nodes}
+    for name, record in records(state):
+        if name.startswith("Ray"):
+            services[name] = "up" if alive(record) and record.get("node_id") in ids else "down"
+    ml = state.get("mlflow")
+    services["MLflow server"] = "up" if alive(ml) and http_ok(f"{ml['uri']}/health") else "down"
+    pg = state.get("postgres")
+    services["PostgreSQL"] = "up" if pg and pg.get("uri") and svc.postgres_answers(pg) else "down"
+    return {**summary(state), "services": services}
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m orchestrator.cluster", description=__doc__.splitlines()[0])
+    parser.add_argument("command", choices=["up", "down", "status", "env"])
+    parser.add_argument("--state-dir", type=Path, default=Path(DEFAULT_STATE_DIR), help="default: ./.cluster")
+    parser.add_argument("--json", action="store_true", help="machine-readable output")
+    parser.add_argument("--head-cpus", type=int, default=2, help="logical CPUs of the Ray head")
+    parser.add_argument("--node-cpus", type=int, default=4, help="logical CPUs of each other Ray node")
+    parser.add_argument("--nodes", type=int, default=1, help="Ray nodes joining the head")
+    parser.add_argument("--object-store-mb", type=int, default=256, help="each Ray node's object store")
+    parser.add_argument("--timeout", type=float, default=120.0, help="seconds each service has to answer")
+    args = parser.parse_args(argv)
+    state_dir = args.state_dir.resolve()
+    try:
+        if args.command == "up":
+            state_dir.mkdir(parents=True, exist_ok=True)
+            state = up(state_dir, args.head_cpus, args.node_cpus, args.nodes, args.object_store_mb, args.timeout)
+            print_summary(state, args.json)
+        elif args.command == "down":
+            if not down(state_dir):
+                print(f"nothing to stop: no {state_path(state_dir)}")
+        elif args.command == "status":
+            info = status(state_dir)
+            if args.json:
+                print(json.dumps(info, indent=2))
+            else:
+                for name, value in info["services"].items():
+                    print(f"{name:<15} {value}")
+            if "down" in info["services"].values():
+                return 1
+        else:
+            state = load_state(state_dir)
+            if state is None:
+                raise ClusterError(f"no cluster recorded in {state_path(state_dir)}; run `up`")
+            for key, value in client_env(state).items():
+                print(f"export {key}={shlex.quote(value)}")
+    except ClusterError as e:
+        print(f"cluster {args.command}: {e}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print(f"cluster {args.command}: interrupted", file=sys.stderr)
+        return 130
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
