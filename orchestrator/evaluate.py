@@ -11,18 +11,27 @@
 - pose error after dynamic time warping (AMP Eq. 10, Table 3), for PPO policies:
   `eval.pose_episodes` episodes of up to `eval.pose_seconds`, with a figure of the
   error over time.
+- videos (`orchestrator.video`, with `eval.video`): time-until-fall rollouts and a tracked clip beside its
+  reference, or one episode of a PPO policy beside its reference, as MP4s under `videos/<name>/`.
+
+A progress bar ("eval", off with `progress=false`) names the phase running: evaluation at the paper's
+sizes takes minutes.
 """
 
 from __future__ import annotations
 
+import contextlib
 import tempfile
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
 from matplotlib.figure import Figure
+from tqdm import tqdm
 
+from orchestrator import video
 from orchestrator.components import sim_config
 from orchestrator.schema import Config
 from orchestrator.tracking.base import Tracker
@@ -30,6 +39,7 @@ from workers.evaluation import random_sampling, time_until_fall, tracking_error
 from workers.imitation_eval import pose_error_episodes
 from workers.learners.base import Weights
 from workers.learners.vae import build_controller
+from workers.models.vae import VAEController
 from workers.motion.library import MotionLibrary
 from workers.policies import GaussianPolicy
 from workers.sim.character import Character
@@ -47,33 +57,15 @@ def evaluate_controller(
     controller = build_controller(character.num_bodies, character.num_actions, cfg.algo.vae)
     controller.load_state_dict(weights.state)
     controller.eval()
-    with torch.no_grad():
-        fall = time_until_fall(
-            controller,
-            character,
-            library,
-            num_rollouts=cfg.eval.fall_rollouts,
-            max_seconds=cfg.eval.fall_max_seconds,
-            sim_config=sim_config(cfg),
-            seed=cfg.seed,
-        )
-        track = tracking_error(
-            controller,
-            library,
-            character,
-            clip_seconds=cfg.eval.tracking_seconds,
-            sim_config=sim_config(cfg),
-            seed=cfg.seed,
-        )
-        walk = random_sampling(
-            controller,
-            character,
-            library,
-            num_rollouts=cfg.eval.random_rollouts,
-            steps=cfg.eval.random_steps,
-            sim_config=sim_config(cfg),
-            seed=cfg.seed,
-        )
+    name = "final" if final else f"iter-{iteration:07d}"
+    videos = video.videos_enabled(cfg, tracker.run_id)
+    with Progress(cfg, 3 + 2 * videos) as progress, torch.no_grad():
+        with progress.phase("video rollouts", skip=not videos):
+            job = video.controller_videos(cfg, character, library, controller, tracker.run_id)
+        with job:  # renders in a child process while the protocols run
+            fall, track, walk = _controller_protocols(cfg, character, library, controller, progress)
+            with progress.phase("videos", skip=not videos):
+                job.log(tracker, f"videos/{name}")
     clips = {k: v for k, v in track.items() if k not in ("mean", "segments")}
     metrics = {
         "eval/time_until_fall_mean": float(fall["mean"]),
@@ -91,13 +83,70 @@ def evaluate_controller(
         "tracking": track,
         "random_sampling": {k: v for k, v in walk.items() if k != "roots"},
     }
-    name = "final" if final else f"iter-{iteration:07d}"
     tracker.log_dict(_jsonable(report), f"eval/{name}.json")
     with tempfile.TemporaryDirectory() as tmp:
         png = Path(tmp) / f"{name}.png"
         _plot(fall, clips, walk, png, f"policy version {weights.version}")
         tracker.log_artifact(str(png), "eval")
     return metrics
+
+
+def _controller_protocols(
+    cfg: Config, character: Character, library: MotionLibrary, controller: VAEController, progress: Progress
+) -> tuple[dict[str, Any], dict[str, float], dict[str, Any]]:
+    """Time-until-fall, tracking error and random sampling of the controller."""
+    with progress.phase("time until fall"):
+        fall = time_until_fall(
+            controller,
+            character,
+            library,
+            num_rollouts=cfg.eval.fall_rollouts,
+            max_seconds=cfg.eval.fall_max_seconds,
+            sim_config=sim_config(cfg),
+            seed=cfg.seed,
+        )
+    with progress.phase("tracking"):
+        track = tracking_error(
+            controller,
+            library,
+            character,
+            clip_seconds=cfg.eval.tracking_seconds,
+            sim_config=sim_config(cfg),
+            seed=cfg.seed,
+        )
+    with progress.phase("random sampling"):
+        walk = random_sampling(
+            controller,
+            character,
+            library,
+            num_rollouts=cfg.eval.random_rollouts,
+            steps=cfg.eval.random_steps,
+            sim_config=sim_config(cfg),
+            seed=cfg.seed,
+        )
+    return fall, track, walk
+
+
+class Progress:
+    """The evaluation's progress bar: `total` phases, each named while it runs (`with progress.phase(name)`)."""
+
+    def __init__(self, cfg: Config, total: int):
+        self.bar = tqdm(total=total, desc="eval", unit="phase", leave=False, disable=not cfg.progress)
+
+    @contextlib.contextmanager
+    def phase(self, name: str, skip: bool = False) -> Iterator[None]:
+        """Name the phase on the bar while the block runs, and count it when done (unless `skip`)."""
+        if not skip:
+            self.bar.set_postfix_str(name)
+        yield
+        if not skip:
+            self.bar.update(1)
+
+    def __enter__(self) -> Progress:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.bar.close()
 
 
 def _jsonable(x: Any) -> Any:
@@ -139,22 +188,31 @@ def evaluate_imitation(
     iteration: int,
     final: bool,
 ) -> dict[str, float]:
-    """AMP's pose error after DTW (Table 3) for a PPO policy's deterministic actions, with its figure."""
-    pose = pose_error_episodes(
-        policy.mean_action,
-        character,
-        library,
-        num_episodes=cfg.eval.pose_episodes,
-        max_seconds=cfg.eval.pose_seconds,
-        sim_config=sim_config(cfg),
-        seed=cfg.seed,
-    )
+    """AMP's pose error after DTW (Table 3) for a PPO policy's deterministic actions, with its figure, and
+    a video of one episode beside its reference."""
+    name = "final" if final else f"iter-{iteration:07d}"
+    videos = video.videos_enabled(cfg, tracker.run_id)
+    with Progress(cfg, 1 + 2 * videos) as progress:
+        with progress.phase("video episode", skip=not videos):
+            job = video.policy_videos(cfg, character, library, policy, tracker.run_id)
+        with job:  # renders in a child process while the episodes run
+            with progress.phase("pose error"):
+                pose = pose_error_episodes(
+                    policy.mean_action,
+                    character,
+                    library,
+                    num_episodes=cfg.eval.pose_episodes,
+                    max_seconds=cfg.eval.pose_seconds,
+                    sim_config=sim_config(cfg),
+                    seed=cfg.seed,
+                )
+            with progress.phase("videos", skip=not videos):
+                job.log(tracker, f"videos/{name}")
     metrics = {
         "eval/pose_error_dtw": pose["dtw"],
         "eval/pose_error_per_frame": pose["per_frame"],
         "eval/episode_seconds": pose["seconds"],
     }
-    name = "final" if final else f"iter-{iteration:07d}"
     tracker.log_dict(_jsonable({"iteration": iteration, "policy_version": policy.version, **pose}), f"eval/{name}.json")
     with tempfile.TemporaryDirectory() as tmp:
         png = Path(tmp) / f"pose-{name}.png"

@@ -10,7 +10,7 @@ from typing import Any
 from matplotlib.figure import Figure
 
 from orchestrator.components import sim_config
-from orchestrator.evaluate import _jsonable
+from orchestrator.evaluate import Progress, _jsonable
 from orchestrator.schema import Config
 from orchestrator.tracking.base import Tracker
 from workers.motion.library import MotionLibrary
@@ -30,15 +30,16 @@ def evaluate_task(
 ) -> dict[str, float]:
     """eval/task_return, eval/task_success, eval/style_deviation_deg, eval/time_until_fall_mean, eval/task_fell
     and each loss term's mean (eval/task_<term>), over `eval.task_goals` fixed goals of `eval.task_seconds`."""
-    result = evaluate_task_policy(
-        policy,
-        character,
-        library,
-        cfg.eval.task_goals,
-        cfg.eval.task_seconds,
-        sim_config=sim_config(cfg),
-        seed=cfg.eval.task_goal_seed,
-    )
+    with Progress(cfg, 1) as progress, progress.phase("task episodes"):
+        result = evaluate_task_policy(
+            policy,
+            character,
+            library,
+            cfg.eval.task_goals,
+            cfg.eval.task_seconds,
+            sim_config=sim_config(cfg),
+            seed=cfg.eval.task_goal_seed,
+        )
     metrics = {
         "eval/task_return": result["return"],
         "eval/task_success": result["success"],

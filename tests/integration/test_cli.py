@@ -20,7 +20,7 @@ ROOT = Path(__file__).resolve().parents[2]
 def orchestrator(*args: str, **kwargs) -> subprocess.Popen:
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     return subprocess.Popen(
-        [sys.executable, "-m", "orchestrator", "runtime=local", *args],
+        [sys.executable, "-m", "orchestrator", "runtime=local", "eval.video=false", *args],
         cwd=ROOT,
         env=env,
         stdout=subprocess.PIPE,

@@ -81,7 +81,16 @@ def test_a_changed_upstream_stage_invalidates_the_ones_below(pipeline):
 
 
 def cli(*overrides: str, timeout: int = 600) -> subprocess.CompletedProcess:
-    command = [sys.executable, "-m", "orchestrator", "scale=smoke", "motion=walk", "runtime=local", "progress=false"]
+    command = [
+        sys.executable,
+        "-m",
+        "orchestrator",
+        "scale=smoke",
+        "motion=walk",
+        "runtime=local",
+        "eval.video=false",
+        "progress=false",
+    ]
     command += overrides
     return subprocess.run(command, cwd=ROOT, capture_output=True, text=True, timeout=timeout)
 

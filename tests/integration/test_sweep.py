@@ -18,7 +18,7 @@ ROOT = Path(__file__).resolve().parents[2]
 def run_preset(sweep_dir: Path, preset: str, *overrides: str) -> subprocess.CompletedProcess:
     """`+experiment=<preset> scale=smoke` through the CLI, into `sweep_dir`; it must succeed."""
     command = [sys.executable, "-m", "orchestrator", f"+experiment={preset}", "scale=smoke", "progress=false"]
-    command += ["runtime=local", f"hydra.sweep.dir={sweep_dir}", *overrides]
+    command += ["runtime=local", "eval.video=false", f"hydra.sweep.dir={sweep_dir}", *overrides]
     proc = subprocess.run(command, cwd=ROOT, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-3000:]
     return proc

@@ -77,6 +77,7 @@ def test_a_task_refuses_an_upstream_run_that_is_not_a_skill_model(task_run):
             "orchestrator",
             "algo=task",
             "runtime=local",
+            "eval.video=false",
             "scale=smoke",
             "motion=walk",
             "progress=false",
