@@ -63,7 +63,13 @@ def main(argv: list[str] | None = None) -> int:
     learning.add_argument("--fall-rollouts", type=int, default=32, help="time-until-fall rollouts per evaluation")
     learning.add_argument("--figure", type=Path, help="where the figure goes (default: outputs/bench/learning-*.png)")
     learning.add_argument("overrides", nargs="*", help="Hydra overrides of the default run, e.g. seed=1")
-    for p in (sim, learners, pipeline, rollout, peer, learning):
+    chaos = sub.add_parser("chaos", help="a Ray run with killed actors and a tracking outage: recovered, nothing lost")
+    chaos.add_argument("--minutes", type=float, default=6.0, help="training wall time (algo.loop.max_minutes)")
+    chaos.add_argument("--kill-every", type=float, default=60.0, help="seconds between rollout worker kills")
+    chaos.add_argument("--outage", type=float, help="seconds the tracking server is down (default: min(180, 20 x M))")
+    chaos.add_argument("--run-dir", type=Path, help="where the run and the server's store go (default: outputs/bench/)")
+    chaos.add_argument("overrides", nargs="*", help="Hydra overrides of the run, e.g. runtime.rollout_workers=3")
+    for p in (sim, learners, pipeline, rollout, peer, learning, chaos):
         p.add_argument("--json", action="store_true", help="print JSON instead of the table")
         p.add_argument("--out", type=Path, help="also write the JSON to this file")
     args = parser.parse_args(argv)
@@ -171,6 +177,18 @@ def main(argv: list[str] | None = None) -> int:
         bench_learning.plot(result, figure)
         result["figure"] = str(figure)
         text = bench_learning.format_table(result)
+    elif args.what == "chaos":
+        import time
+
+        from orchestrator.bench import chaos as bench_chaos
+
+        if args.minutes <= 0 or args.kill_every <= 0 or (args.outage is not None and args.outage <= 0):
+            parser.error("--minutes, --kill-every and --outage must be positive")
+        run_dir = args.run_dir or Path("outputs/bench") / f"chaos-{time.strftime('%Y-%m-%d_%H-%M-%S')}"
+        result = bench_chaos.run(
+            args.minutes, args.kill_every, args.outage, run_dir, args.overrides, lambda m: print(m, file=sys.stderr)
+        )
+        text = bench_chaos.format_table(result)
     else:  # pragma: no cover - argparse refuses unknown commands
         parser.error(f"unknown benchmark {args.what}")
 
@@ -178,6 +196,8 @@ def main(argv: list[str] | None = None) -> int:
         args.out.parent.mkdir(parents=True, exist_ok=True)
         args.out.write_text(json.dumps(result, indent=2))
     print(json.dumps(result, indent=2) if args.json else text)
+    if args.what == "chaos" and not bench_chaos.passed(result):
+        return 1  # a fault not recovered, a metric lost, or the run did not finish
     return 0
 
 

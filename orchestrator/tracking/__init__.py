@@ -1,8 +1,11 @@
-"""Tracking: the `Tracker` interface and its no-op twin (`base`), the MLflow tracker with its disk
-spool (`mlflow`), and a local MLflow server for parallel jobs (`server`).
+"""Tracking: the `Tracker` interface and its no-op twin (`base`), the MLflow tracker (`mlflow`) with
+its disk spool drained in the background (`spool`), a local MLflow server for parallel jobs
+(`server`), the URI check (`uri`), system metrics (`system`) and the trained policy as an MLflow
+model (`model`).
 
-This is the only package that imports mlflow, and only `orchestrator.tracking.mlflow` does: importing
-`orchestrator.tracking` or `orchestrator.tracking.base` does not load it (the server runs as a subprocess).
+This is the only package that imports mlflow, and importing `orchestrator.tracking`,
+`orchestrator.tracking.base` or `orchestrator.tracking.uri` does not load it (the server runs as a
+subprocess).
 """
 
 from orchestrator.tracking.base import NoOpTracker, Tracker, flatten

@@ -8,6 +8,7 @@ import json
 import logging
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -293,3 +294,91 @@ def test_a_backend_that_fails_then_recovers(run_dir):
     assert tracker.pending() == 0  # sent directly
     tracker.close()
     assert history(MlflowClient(embedded_uri(run_dir)), tracker.run_id, "a") == [(s, float(s)) for s in (1, 2, 3, 4)]
+
+
+# ---------------------------------------------------------------- the background replay
+
+
+def wait_until(condition, timeout_s: float = 30.0) -> bool:
+    """Poll `condition` until it holds or `timeout_s` passes; whether it held."""
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.02)
+    return True
+
+
+def test_the_spool_drains_in_the_background_while_nothing_more_is_logged(run_dir):
+    tracker = MlflowTracker(None, "default", run_dir=run_dir, retry_interval_s=0.05)
+    client = tracker._sender.client
+    log_batch = client.log_batch
+
+    def down(*args, **kwargs):
+        raise ConnectionError("connection refused")
+
+    client.log_batch = down
+    for step in range(5):
+        tracker.log_metrics({"a": float(step)}, step=step)
+    assert tracker.pending() == 5
+    client.log_batch = log_batch  # the backend is back; the run logs nothing more
+    assert wait_until(lambda: tracker.pending() == 0)
+    assert history(MlflowClient(embedded_uri(run_dir)), tracker.run_id, "a") == [(s, float(s)) for s in range(5)]
+    thread = tracker._sender._thread
+    assert thread is not None and thread.daemon and thread.is_alive()  # idle, waiting for the next outage
+    tracker.close()
+    assert not thread.is_alive()
+    assert MlflowClient(embedded_uri(run_dir)).get_run(tracker.run_id).info.status == "FINISHED"
+
+
+def test_records_logged_during_a_background_replay_are_kept_in_order(run_dir):
+    """The training thread appends while the background thread sends the spool: it does not wait for the
+    request, nothing it appends is lost when the replay rewrites the spool, and nothing is sent twice."""
+    tracker = MlflowTracker(None, "default", run_dir=run_dir, retry_interval_s=0.05)
+    client = tracker._sender.client
+    log_batch = client.log_batch
+    started, release = threading.Event(), threading.Event()
+
+    def down(*args, **kwargs):
+        raise ConnectionError("connection refused")
+
+    def slow(*args, **kwargs):
+        started.set()
+        assert release.wait(30)
+        return log_batch(*args, **kwargs)
+
+    client.log_batch = down
+    for step in range(10):
+        tracker.log_metrics({"a": float(step)}, step=step)
+    client.log_batch = slow
+    assert started.wait(30)  # the background thread is inside a request with the first 10
+    for step in range(10, 20):
+        tracker.log_metrics({"a": float(step)}, step=step)  # would hang here if it waited for the request
+    assert tracker.pending() == 20  # all appended behind the records in flight
+    release.set()
+    assert wait_until(lambda: tracker.pending() == 0)
+    tracker.close()
+    steps = [m.step for m in MlflowClient(embedded_uri(run_dir)).get_metric_history(tracker.run_id, "a")]
+    assert sorted(steps) == list(range(20))  # each once
+    assert not (run_dir / SPOOL_FILE).exists()
+
+
+def test_close_stops_a_background_thread_that_is_still_retrying(run_dir):
+    uri = f"http://127.0.0.1:{free_port()}"  # nothing listens there
+    tracker = MlflowTracker(uri, "default", run_dir=run_dir, retry_interval_s=0.05)
+    tracker.log_metrics({"a": 1.0}, step=1)
+    thread = tracker._sender._thread
+    assert thread is not None and thread.is_alive()
+    tracker.close()
+    assert not thread.is_alive()
+    assert tracker.pending() == 3  # create, metrics, end: left for the next tracker or replay_spool
+
+
+def test_a_spool_of_only_damaged_lines_is_cleared_not_retried_forever(run_dir):
+    run_dir.mkdir(parents=True)
+    (run_dir / SPOOL_FILE).write_text('{"op": "metrics", "ru\n')  # nothing in it can be sent
+    tracker = MlflowTracker(None, "default", run_dir=run_dir, retry_interval_s=0.05)
+    assert tracker.pending() == 0 and not (run_dir / SPOOL_FILE).exists()
+    tracker.log_metrics({"a": 1.0}, step=1)
+    tracker.close()
+    assert history(MlflowClient(embedded_uri(run_dir)), tracker.run_id, "a") == [(1, 1.0)]

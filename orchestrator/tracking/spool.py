@@ -1,0 +1,392 @@
+"""The disk spool of the MLflow tracker and the sender that drains it, in the foreground and in the background.
+
+A `Sender` sends *records* (small JSON-able dicts: run creation, params, metrics, tags, artifact,
+end) to one MLflow backend, in order. A record that cannot be sent goes to a `Spool`, an
+append-only JSON-lines file, and everything after it follows it there until the spool is drained.
+
+Draining happens three ways: when the sender was made with `background=True`, from a daemon thread
+(started when something is first spooled) that retries every `retry_interval_s` for as long as anything is
+spooled, so that a run that logs rarely, or has stopped logging, catches up once the server is back;
+without it, inline, when a record is submitted after the retry interval (doubled with each failure, up
+to `max_retry_interval_s`) has passed; and always on `drain(force=True)` (the tracker's `flush` and
+`close`). With the thread, the training thread makes no request while anything is spooled, so a silent
+host costs it one timeout per outage, the first failed send.
+
+Locks, always taken in this order: `send_lock` (one sender, not reentrant) serialises the requests to the
+backend, so that records arrive in order and the client is used by one thread at a time; `spool.lock`
+(one per spool file in the process) guards the file and its count for the few microseconds of an append,
+read or rewrite. Requests are made without holding `spool.lock`: while the background thread replays the
+spool, training appends to it without waiting for the server.
+
+Errors are sorted in two kinds. MLflow's refusals (invalid value, changed param, unknown run) would
+fail again on every replay, so they are logged and the offending entries dropped (a refused batch is
+retried entry by entry, so one bad key does not lose the other 99). Anything else (connection
+refused, timeouts, 5xx, a locked SQLite file) spools the record.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import shutil
+import threading
+import time
+from collections import deque
+from collections.abc import Callable, Iterable
+from pathlib import Path
+
+# No calls home from training jobs (MLflow 3 sends client telemetry unless told not to), and no minutes of
+# retries on a dead server (MLflow's defaults: 7 retries with exponential backoff, 120 s timeout).
+os.environ.setdefault("MLFLOW_DISABLE_TELEMETRY", "true")
+os.environ.setdefault("MLFLOW_HTTP_REQUEST_MAX_RETRIES", "0")
+os.environ.setdefault("MLFLOW_HTTP_REQUEST_TIMEOUT", "3")
+os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")  # a bar per downloaded stage artifact
+
+from mlflow.entities import Metric, Param, RunTag  # noqa: E402 - after the environment defaults
+from mlflow.exceptions import MlflowException  # noqa: E402
+from mlflow.tracking import MlflowClient  # noqa: E402
+
+from orchestrator.tracking.base import EXPERIMENT_TAGS  # noqa: E402
+
+log = logging.getLogger(__name__)
+
+PARAMS_PER_BATCH = 100  # MLflow's per-request limits
+TAGS_PER_BATCH = 100
+METRICS_PER_BATCH = 1000
+PENDING = "pending-"  # prefix of a run key whose run is not created yet
+# MLflow error codes that a retry cannot fix: the entries are dropped rather than spooled.
+REFUSALS = {"INVALID_PARAMETER_VALUE", "RESOURCE_ALREADY_EXISTS", "RESOURCE_DOES_NOT_EXIST", "BAD_REQUEST"}
+_SPOOL_LOCKS: dict[Path, threading.RLock] = {}
+
+
+class Refused(Exception):
+    """A record the backend will never accept (see REFUSALS)."""
+
+
+def refused(err: BaseException) -> bool:
+    """True for errors a retry cannot fix: MLflow's refusals, and a malformed record (KeyError, TypeError)."""
+    if isinstance(err, MlflowException):
+        return err.error_code in REFUSALS
+    return isinstance(err, Refused | KeyError | TypeError)
+
+
+class Spool:
+    """An append-only JSON-lines file of records that could not be sent, oldest first.
+
+    `count` is the number of records in the file, those being replayed included; use under `lock`.
+    """
+
+    def __init__(self, path: Path):
+        self.path = path
+        self.lock = _SPOOL_LOCKS.setdefault(path.resolve(), threading.RLock())
+        self.count = sum(1 for line in path.open() if line.strip()) if path.exists() else 0
+
+    def append(self, records: Iterable[dict]) -> None:
+        lines = [json.dumps(r) + "\n" for r in records]
+        if lines:
+            with self.lock, self.path.open("a") as f:
+                f.writelines(lines)
+                f.flush()
+                os.fsync(f.fileno())
+                self.count += len(lines)
+
+    def read(self) -> tuple[list[dict], int]:
+        """The spooled records and the file's length in bytes when read (for `replace`)."""
+        with self.lock:
+            if not self.path.exists():
+                return [], 0
+            data = self.path.read_bytes()
+        return self._parse(data, 1), len(data)
+
+    def replace(
+        self, records: list[dict], read_up_to: int | None = None, resolve: Callable[[dict], dict] | None = None
+    ) -> None:
+        """Make `records` the spool (atomically), followed by whatever was appended after the first
+        `read_up_to` bytes were read (None: nothing is kept), each passed through `resolve`; no records
+        at all deletes the file."""
+        with self.lock:
+            later: list[dict] = []
+            if read_up_to is not None and self.path.exists():
+                with self.path.open("rb") as f:
+                    f.seek(read_up_to)
+                    later = self._parse(f.read(), None)
+            everything = records + later
+            if resolve is not None:
+                everything = [resolve(r) for r in everything]
+            if not everything:
+                self.path.unlink(missing_ok=True)
+            else:
+                tmp = self.path.with_suffix(".tmp")
+                tmp.write_text("".join(json.dumps(r) + "\n" for r in everything))
+                os.replace(tmp, self.path)
+            self.count = len(everything)
+
+    def _parse(self, data: bytes, first_line: int | None) -> list[dict]:
+        """Records from JSON lines; a line that does not parse (a write cut short by a crash) is skipped."""
+        records = []
+        for number, line in enumerate(data.decode(errors="replace").splitlines(), first_line or 1):
+            try:
+                record = json.loads(line)
+            except json.JSONDecodeError:
+                record = None
+            if isinstance(record, dict) and "op" in record and "run" in record:
+                records.append(record)
+            elif line.strip():
+                where = f"line {number}" if first_line else "a line appended during a replay"
+                log.warning("tracking: %s %s is not a record; skipped", self.path, where)
+        return records
+
+
+class Sender:
+    """Sends records to one MLflow backend, in order, spooling them while it fails.
+
+    `submit` sends a record at once when the spool is empty (or can be emptied first), and otherwise
+    appends it; `drain` replays the spool. Runs created from a spooled `create` record get their id
+    in `ids` (placeholder key -> run id). With `background`, a daemon thread drains the spool while it
+    is not empty (`stop` ends it).
+    """
+
+    def __init__(
+        self,
+        uri: str,
+        spool_path: Path,
+        retry_interval_s: float,
+        max_retry_interval_s: float = 60.0,
+        background: bool = False,
+    ):
+        self.uri = uri
+        self.retry_interval_s = retry_interval_s
+        self.max_retry_interval_s = max_retry_interval_s
+        self.client = MlflowClient(tracking_uri=uri)
+        self.spool = Spool(spool_path)
+        self.send_lock = threading.Lock()
+        self.ids: dict[str, str] = {}
+        self.background = background
+        self._retry_at = 0.0  # time.monotonic() before which no send is tried
+        self._failures = 0  # consecutive failed attempts
+        self._wake = threading.Event()  # something was spooled
+        self._stopped = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def submit(self, record: dict) -> None:
+        """Send `record` now, or append it to the spool if the backend is (or recently was) away, or the
+        spool is being replayed. Never raises: a record that can be neither sent nor spooled (disk full)
+        is logged and lost."""
+        try:
+            if self._thread is None and self.spool.count and time.monotonic() >= self._retry_at:
+                self.drain()  # no background thread (yet): replay inline
+            if self._spooled(record):  # without waiting for a replay in progress
+                return
+            with self.send_lock:  # free but for a moment: nothing is being replayed
+                if not self._spooled(record):
+                    self._spool(self._process(deque([record])))
+        except Exception as err:
+            log.error("tracking: a %s record was lost: %s", record["op"], err)
+
+    def drain(self, force: bool = False) -> bool:
+        """Replay the spool in order (`force`: even within the retry interval); True when it is empty."""
+        with self.send_lock:
+            return self._drain(force)
+
+    def pending(self) -> int:
+        with self.spool.lock:
+            return self.spool.count
+
+    def note_failure(self, err: BaseException) -> None:
+        """Remember that the backend failed: no sends are tried for `retry_interval_s`, or, without a
+        background thread, for longer with each failure, doubling up to `max_retry_interval_s` (a silent
+        host costs the training thread a timeout per attempt then)."""
+        self._failures += 1
+        doubling = 1 if self._thread is not None else 2 ** (self._failures - 1)
+        wait = min(self.retry_interval_s * doubling, self.max_retry_interval_s)
+        self._retry_at = time.monotonic() + wait
+        if self._failures == 1:
+            log.warning("tracking: %s unreachable (%s); spooling to %s", self.uri, err, self.spool.path)
+
+    def stop(self, timeout_s: float = 10.0) -> None:
+        """End the background thread (after the request it may be making); the spool stays on disk."""
+        self._stopped.set()
+        self._wake.set()
+        thread = self._thread
+        if thread is not None and thread is not threading.current_thread():
+            thread.join(timeout_s)
+            if thread.is_alive():
+                log.warning("tracking: the spool's background sender did not stop within %.0f s", timeout_s)
+
+    # ---------------------------------------------------------------- under send_lock
+
+    def _drain(self, force: bool = False) -> bool:
+        with self.spool.lock:
+            if not self.spool.count:
+                return True
+            if not force and time.monotonic() < self._retry_at:
+                return False
+        records, size = self.spool.read()
+        rest = self._process(deque(records))
+        if rest != records or not records:  # (none: every line was damaged) and what was appended meanwhile
+            self.spool.replace(rest, read_up_to=size, resolve=self._resolved)
+            log.info("tracking: replayed %d spooled records, %d left", len(records) - len(rest), self.spool.count)
+        return self.pending() == 0
+
+    def _spooled(self, record: dict) -> bool:
+        """Append `record` to the spool if it is not empty, or no send is to be tried yet; True if so."""
+        with self.spool.lock:
+            if self.spool.count or time.monotonic() < self._retry_at:
+                self._spool([record])
+                return True
+        return False
+
+    def _spool(self, records: list[dict]) -> None:
+        if records:
+            self.spool.append(records)
+            if self.background and not self._stopped.is_set():
+                if self._thread is None:
+                    self._thread = threading.Thread(target=self._run, name="tracking-spool", daemon=True)
+                    self._thread.start()
+                self._wake.set()
+
+    def _process(self, queue: deque[dict]) -> list[dict]:
+        """Send records from the front of `queue` until it is empty or the backend fails; return the rest."""
+        while queue:
+            batch, used = _merge_metrics(queue)
+            try:
+                self._send(batch)
+            except Exception as err:
+                if not refused(err):
+                    self.note_failure(err)
+                    return list(queue)
+                for _ in range(used):
+                    queue.popleft()
+                singles = _split(batch)
+                if len(singles) > 1:  # retry entry by entry, dropping only the refused ones
+                    queue.extendleft(reversed(singles))
+                else:
+                    log.warning("tracking: %s record dropped, refused by MLflow: %s", batch["op"], err)
+                    _discard_owned(batch)
+                continue
+            for _ in range(used):
+                queue.popleft()
+            _discard_owned(batch)
+            if self._failures:
+                self._failures, self._retry_at = 0, 0.0
+                log.warning("tracking: %s answers again", self.uri)
+        return []
+
+    # ---------------------------------------------------------------- the background thread
+
+    def _run(self) -> None:
+        """Drain the spool at the retry interval while it holds anything; sleep until something is spooled."""
+        while not self._stopped.is_set():
+            if not self.pending():
+                self._wake.wait()
+                self._wake.clear()
+                continue
+            delay = self._retry_at - time.monotonic()
+            if delay > 0:
+                self._stopped.wait(delay)
+                continue
+            try:
+                self.drain()
+            except Exception as err:  # a bug or a full disk must not end the thread silently with records left
+                log.error("tracking: background replay of %s failed: %s", self.spool.path, err)
+                self.note_failure(err)
+
+    # ---------------------------------------------------------------- requests
+
+    def _resolved(self, record: dict) -> dict:
+        """`record` with its placeholder run key replaced by the run id, once the run exists."""
+        run = self.ids.get(record["run"])
+        return record if run is None else {**record, "run": run}
+
+    def _run_id(self, record: dict) -> str:
+        run = record["run"]
+        if run.startswith(PENDING):
+            if run not in self.ids:
+                raise Refused(f"run {run} was never created")
+            run = self.ids[run]
+        return run
+
+    def _send(self, record: dict) -> None:
+        """One request (up to three for run creation) to the backend; raises on any failure."""
+        op, client = record["op"], self.client
+        if op == "create":
+            self._create(record)
+        elif op == "resume":
+            client.update_run(record["run"], status="RUNNING")
+        elif op == "params":
+            params = [Param(k, v) for k, v in record["params"].items()]
+            client.log_batch(self._run_id(record), params=params, synchronous=True)
+        elif op == "metrics":
+            metrics = [Metric(k, v, ts, step) for k, v, ts, step in record["metrics"]]
+            client.log_batch(self._run_id(record), metrics=metrics, synchronous=True)
+        elif op == "tags":
+            tags = [RunTag(k, v) for k, v in record["tags"].items()]
+            client.log_batch(self._run_id(record), tags=tags, synchronous=True)
+        elif op == "artifact":
+            path = Path(record["path"])
+            if not path.exists():
+                raise Refused(f"artifact {path} no longer exists")
+            upload = client.log_artifacts if path.is_dir() else client.log_artifact
+            upload(self._run_id(record), str(path), record.get("artifact_path"))
+        elif op == "end":
+            client.set_terminated(self._run_id(record), status=record["status"], end_time=record["end_time"])
+        else:
+            raise Refused(f"unknown record {op!r}")
+
+    def _create(self, record: dict) -> None:
+        client, name = self.client, record["experiment"]
+        experiment = client.get_experiment_by_name(name)
+        if experiment is None:
+            try:
+                experiment_id = client.create_experiment(
+                    name, artifact_location=record["artifact_location"], tags=EXPERIMENT_TAGS
+                )
+            except MlflowException as err:  # created meanwhile by a parallel job
+                if err.error_code != "RESOURCE_ALREADY_EXISTS":
+                    raise
+                experiment_id = client.get_experiment_by_name(name).experiment_id
+        else:
+            experiment_id = experiment.experiment_id
+            if experiment.lifecycle_stage == "deleted":
+                log.warning("tracking: experiment %r was deleted; restoring it", name)
+                client.restore_experiment(experiment_id)
+            for key, value in EXPERIMENT_TAGS.items():
+                if key not in experiment.tags:
+                    client.set_experiment_tag(experiment_id, key, value)
+        tags, run_name = record["tags"], record["run_name"]
+        run = client.create_run(experiment_id, start_time=record["start_time"], tags=tags, run_name=run_name)
+        self.ids[record["run"]] = run.info.run_id
+
+
+def _merge_metrics(queue: deque[dict]) -> tuple[dict, int]:
+    """The front record, merged with the metric records right behind it (same run, one batch's worth)."""
+    first = queue[0]
+    if first["op"] != "metrics" or first.get("single"):
+        return first, 1
+    metrics, used = list(first["metrics"]), 1
+    while used < len(queue):
+        nxt = queue[used]
+        if nxt["op"] != "metrics" or nxt["run"] != first["run"] or nxt.get("single"):
+            break
+        if len(metrics) + len(nxt["metrics"]) > METRICS_PER_BATCH:
+            break
+        metrics += nxt["metrics"]
+        used += 1
+    return {**first, "metrics": metrics}, used
+
+
+def _split(record: dict) -> list[dict]:
+    """A params/metrics/tags record as one record per entry, marked not to be merged again (others: itself)."""
+    op = record["op"]
+    if op == "metrics":
+        return [{**record, "metrics": [m], "single": True} for m in record["metrics"]]
+    if op in ("params", "tags"):
+        return [{**record, op: {k: v}, "single": True} for k, v in record[op].items()]
+    return [record]
+
+
+def _discard_owned(record: dict) -> None:
+    """Delete a file the tracker wrote for upload (log_dict, log_figure) once it is done with."""
+    if record["op"] == "artifact" and record.get("owned"):
+        shutil.rmtree(Path(record["path"]).parent, ignore_errors=True)
