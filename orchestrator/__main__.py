@@ -39,16 +39,17 @@ def _is_multirun() -> bool:
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="config")
 def main(dcfg: DictConfig) -> float | None:
-    try:
-        cfg = validate(dcfg)
-    except ConfigError as e:
-        _fail(f"config error: {e}")
-    if cfg.tracking.run_name is None:
-        cfg.tracking.run_name = _run_name(cfg)
-    from orchestrator.build import run
     from orchestrator.sweep import parent_of
 
     parent = parent_of(HydraConfig.get().sweep.dir) if _is_multirun() else None
+    try:
+        cfg = validate(dcfg)
+    except ConfigError as e:
+        _fail(f"config error: {e}", parent)
+    if cfg.tracking.run_name is None:
+        cfg.tracking.run_name = _run_name(cfg)
+    from orchestrator.build import run
+
     if parent is not None:
         # A point of a sweep: a child of the sweep's parent run, in the sweep's store.
         cfg.tracking.uri = cfg.tracking.uri or parent["uri"]
@@ -63,23 +64,32 @@ def main(dcfg: DictConfig) -> float | None:
         check(cfg)  # before anything is started or written
         summary = run(cfg, parent_run_id=parent["parent_run_id"] if parent else None)
     except StageError as e:
-        _fail(f"stage error: {e}")
+        _fail(f"stage error: {e}", parent)
     except ConfigError as e:
-        _fail(f"config error: {e}")
+        _fail(f"config error: {e}", parent)
     except InputError as e:
-        _fail(f"error: {e}")
+        _fail(f"error: {e}", parent)
     # What an upstream stage run here reads, which `check` did not see.
     except ClipError as e:
-        _fail(f"error: clip {e}")
+        _fail(f"error: clip {e}", parent)
     except CharacterError as e:
-        _fail(f"error: character {e}")
+        _fail(f"error: character {e}", parent)
     except CheckpointError as e:
-        _fail(f"error: checkpoint {e}")
+        _fail(f"error: checkpoint {e}", parent)
     return summary.get("eval/time_until_fall_mean")
 
 
-def _fail(line: str) -> NoReturn:
+def _fail(line: str, parent: dict | None = None) -> NoReturn:
+    """One line and exit status 2; a sweep point also marks the sweep's parent run FAILED (the multirun
+    ends here, so the sweep's own end, which would close it, never comes)."""
     print(line, file=sys.stderr)
+    if parent is not None:
+        try:
+            from mlflow import MlflowClient
+
+            MlflowClient(parent["uri"]).set_terminated(parent["parent_run_id"], "FAILED")
+        except Exception:  # noqa: BLE001 - the store is away: the parent stays RUNNING, the line above says why
+            pass
     sys.exit(2)
 
 

@@ -132,3 +132,17 @@ def test_ablation_prior_pulse_runs_table3s_first_and_last_rows_as_configurations
         assert c.data.params["algo.task.task"] == "vr" and "eval/task_success" in c.data.metrics
     assert rows == {"standard_normal": ("standard_normal", "False", 0.0), "learned": ("learned", "True", 0.005)}
     assert "93.4 %" in (sweep_dir / "comparison.md").read_text()
+
+
+def test_a_point_with_bad_input_ends_the_sweep_with_one_line_and_its_parent_failed(tmp_path):
+    """The first point's w_gp is negative: it is refused with the key named, exit 2, and the sweep's
+    parent run is closed as FAILED rather than left RUNNING (the multirun ends at that point)."""
+    sweep_dir = tmp_path / "sweep"
+    command = [sys.executable, "-m", "orchestrator", "+experiment=ablation_gp", "scale=smoke", "progress=false"]
+    command += ["runtime=local", f"hydra.sweep.dir={sweep_dir}", "algo.discriminator.w_gp=-1,0"]
+    proc = subprocess.run(command, cwd=ROOT, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 2
+    last = proc.stderr.strip().splitlines()[-1]
+    assert last.startswith("config error:") and "w_gp" in last and "Traceback" not in proc.stderr
+    _, parent, children = parent_and_children(sweep_dir)
+    assert parent.info.status == "FAILED" and children == []
