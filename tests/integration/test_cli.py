@@ -66,6 +66,7 @@ def test_killed_run_resumes_into_the_same_mlflow_run(tmp_path):
     assert steps[-4:] == [per_iteration * i for i in range(last + 1, last + 5)]
     assert len(client.search_runs([client.get_run(run_id).info.experiment_id])) == 1
     # Named by what it is, with Hydra's own record of the config and overrides beside config.json.
-    assert client.get_run(run_id).info.run_name.startswith("controlvae seed=0 scale=smoke motion=walk")
+    name = client.get_run(run_id).info.run_name
+    assert name.startswith("controlvae seed=0 runtime=local eval.video=false scale=smoke motion=walk"), name
     hydra = {a.path for a in client.list_artifacts(run_id, "hydra")}
     assert {"hydra/config.yaml", "hydra/overrides.yaml", "hydra/hydra.yaml"} <= hydra
