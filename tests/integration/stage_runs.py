@@ -15,8 +15,13 @@ from orchestrator.schema import Config, validate
 
 
 def smoke_config(run_dir: Path, *overrides: str) -> Config:
-    """As the `smoke` fixture composes (tests/integration/conftest.py)."""
+    """The smoke scale on the walk clip, as `python -m orchestrator` composes it, with `overrides`; what the
+    `smoke` fixture (conftest.py) and the module-scoped fixtures use."""
     base = ["scale=smoke", "motion=walk", f"run_dir={run_dir}", "progress=false"]
+    # Tests run single-process (runtime=local) unless they ask for Ray; `python -m orchestrator` defaults to Ray.
+    base += [] if any(o.startswith("runtime=") for o in overrides) else ["runtime=local"]
+    # Videos cost seconds per evaluation in software GL: only the tests that ask for them render them.
+    base += [] if any(o.startswith("eval.video=") for o in overrides) else ["eval.video=false"]
     return validate(stages.compose([*base, *overrides]))
 
 
