@@ -60,22 +60,22 @@ def main(dcfg: DictConfig) -> float | None:
     from workers.motion.errors import ClipError
     from workers.sim.character import CharacterError
 
+    # The line's prefix per kind of bad input; clips, characters and checkpoints that an upstream stage
+    # run here reads are ones `check` did not see.
+    prefixes = {
+        StageError: "stage error: ",
+        ConfigError: "config error: ",
+        InputError: "error: ",
+        ClipError: "error: clip ",
+        CharacterError: "error: character ",
+        CheckpointError: "error: checkpoint ",
+    }
     try:
         check(cfg)  # before anything is started or written
         summary = run(cfg, parent_run_id=parent["parent_run_id"] if parent else None)
-    except StageError as e:
-        _fail(f"stage error: {e}", parent)
-    except ConfigError as e:
-        _fail(f"config error: {e}", parent)
-    except InputError as e:
-        _fail(f"error: {e}", parent)
-    # What an upstream stage run here reads, which `check` did not see.
-    except ClipError as e:
-        _fail(f"error: clip {e}", parent)
-    except CharacterError as e:
-        _fail(f"error: character {e}", parent)
-    except CheckpointError as e:
-        _fail(f"error: checkpoint {e}", parent)
+    except tuple(prefixes) as e:
+        prefix = next(p for kind, p in prefixes.items() if isinstance(e, kind))
+        _fail(f"{prefix}{e}", parent)
     return summary.get("eval/time_until_fall_mean")
 
 
