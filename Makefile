@@ -5,7 +5,7 @@ VENV ?= .venv
 BIN := $(VENV)/bin
 TORCH ?= torch==2.13.0
 
-.PHONY: setup system-packages run test test-all bench lint
+.PHONY: setup samples system-packages run test test-all bench lint
 
 # Debian packages the project uses beside Python: PostgreSQL's server (MLflow's backend store in
 # `make cluster-up`) and the GL libraries of MuJoCo's offscreen renderer (evaluation videos:
@@ -22,6 +22,11 @@ setup:
 	$(BIN)/pip install --upgrade pip
 	$(BIN)/pip install $(TORCH)
 	$(BIN)/pip install -c constraints.txt -e '.[dev]'
+	$(MAKE) samples
+
+# Third-party BVH files the import tests read (from bvhtoolbox's sdist on PyPI; tests/samples.py).
+samples:
+	$(BIN)/python -m tests.samples
 
 # The main job: the default ControlVAE run (see README).
 run:

@@ -1,16 +1,15 @@
 """BVH import of skeletons from other tools: naming conventions, grounding, the joint map's wiring.
 
-No package on PyPI ships realistic BVH clips in its installed files (searched: bvh, bvhio,
-pybvh, pybvh-ml, bvhtoolbox, bvhsdk, bvhtools, bvh-converter, fairmotion, mcp-persor,
-magic-motion-metrics, mocap-converter, mocaplib, poselib-v2, holosoma-retargeting,
-humex-converter-lafan, ohao, pymocapviewer, micromotion, krajjat, eden-soma-retargeter: the
-last ships one single-frame skeleton; bvhtodeepmimic does not build). So:
-
-* the naming conventions are checked on the hierarchies of real exports (test_bvh_names.py);
-* whole clips are written here in the Mixamo and mocap-bank styles (their names, nesting,
+* Two third-party files, written by nobody here: the Mixamo export and the mocap-bank clip
+  (Collar/Shoulder/Elbow/Wrist, Hip/Knee/Ankle) that `bvhtoolbox`'s source distribution on
+  PyPI ships as test data (`make samples`, part of `make setup`, fetches them; tests/samples.py).
+  No package on PyPI ships BVH clips in its installed files (searched: bvh, bvhio, pybvh,
+  pybvh-ml, bvhtoolbox's wheel, bvhsdk, bvhtools, bvh-converter, fairmotion, mcp-persor, ...).
+* The naming conventions are checked on the hierarchies of real exports (test_bvh_names.py).
+* Whole clips are written here in the Mixamo and mocap-bank styles (their names, nesting,
   T-pose or arms-down rest poses, clavicles, extra spine and toe joints, centimetres, legs
-  longer than ours) moving as the bundled walk, so the import has a known answer;
-* files of your own run through the same checks with MOCAP_BVH_DIR=/a/folder/of/bvh
+  longer than ours) moving as the bundled walk, so the import has a known answer.
+* Files of your own run through the same checks with MOCAP_BVH_DIR=/a/folder/of/bvh
   (skipped without it).
 """
 
@@ -19,12 +18,14 @@ from __future__ import annotations
 import json
 import os
 import re
+import warnings
 from pathlib import Path
 from types import SimpleNamespace
 
 import mujoco
 import numpy as np
 import pytest
+from samples import BVH_DIR, FETCH
 from test_bvh import assert_same_poses, body_globals, write_bvh
 
 from orchestrator import motion as motion_cli
@@ -233,6 +234,52 @@ def test_library_and_load_world_pass_the_joint_map_and_key_the_cache_on_it(chara
     cfg.motion.joint_map = {}
     with pytest.raises(ClipError, match="right_knee"):
         load_world(cfg)
+
+
+# ----------------------------------------------------------------------------
+# Third-party files: bvhtoolbox's test data (make samples)
+# ----------------------------------------------------------------------------
+# file -> (frames, the source joints our chest and shoulders take: the mocap-bank file's
+# Shoulder is the upper arm, its Collar the clavicle; Mixamo's upper arm is Arm)
+THIRD_PARTY = {
+    "test_freebvh.bvh": (69, {"chest": "mixamorig:Spine2", "left_shoulder": "mixamorig:LeftArm"}),
+    "test_mocapbank.bvh": (455, {"chest": "Chest2", "left_shoulder": "LeftShoulder", "right_hip": "RightHip"}),
+}
+
+
+def sample(name: str) -> Path:
+    path = BVH_DIR / name
+    if not path.is_file():
+        pytest.fail(f"{path.relative_to(BVH_DIR.parents[2])} missing: run {FETCH}")
+    return path
+
+
+@pytest.mark.parametrize("name", sorted(THIRD_PARTY))
+def test_third_party_file(character, name, tmp_path):
+    path, (frames, expected) = sample(name), THIRD_PARTY[name]
+    joints, _, _ = bvh.parse(path)
+    matched = {ours: joints[i].name for ours, i in match_joints(path, joints, character.body_names).items()}
+    assert {k: matched[k] for k in expected} == expected
+    assert {b for b in character.body_names} <= set(matched) | {"root"}  # every body of ours has a source
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no body left at identity "with only a warning"
+        raw = bvh.load(character, path)
+    assert len(raw.qpos) == frames
+    # Both shoulders move (the mocap-bank file's were lost to the identity rotation before).
+    for side in ("left", "right"):
+        q = raw.qpos[:, character.joint_qpos[character.joint_names.index(f"{side}_shoulder")]]
+        assert np.abs(q - [1.0, 0.0, 0.0, 0.0]).max() > 0.05
+    # On the ground (they floated 4-8 cm), in metres (the files are in centimetres), limbs aligned.
+    low = lowest_points(character, raw.qpos)
+    assert abs(np.percentile(low, GROUND_PERCENTILE)) < 1e-6 and low.min() > -0.01
+    assert 0.4 < raw.qpos[:, 2].min() and raw.qpos[:, 2].max() < 1.0
+    assert bone_direction_errors(character, path, raw).max() < np.deg2rad(5.0)
+    # Our elbow is one hinge; a forearm that the source turns out of its plane is followed within 10 degrees.
+    assert bone_direction_errors(character, path, raw, limbs=("elbow",)).max() < np.deg2rad(10.0)
+    report = motion_cli.check(str(path))  # the checker's plausibility limits, as a run applies them
+    assert report["frames"] == frames and abs(report["rate_hz"] - 30.0) < 1e-3
+    lib = MotionLibrary.load(character, [str(path)], fps=30, cache_dir=tmp_path)
+    assert lib.clips[0].qpos.shape == raw.qpos.shape
 
 
 # ----------------------------------------------------------------------------

@@ -1,5 +1,7 @@
 """Motion data: bundled clips, axes and scale, mirroring, velocities, looping, sampling, cache."""
 
+import copy
+
 import mujoco
 import numpy as np
 import pytest
@@ -110,6 +112,7 @@ def test_one_shot_clip_clamps_and_ends(character, clip_cache):
 
 
 def test_weighted_start_sampling(walk_run):
+    walk_run = copy.deepcopy(walk_run)  # the session's library keeps its weights for later tests
     rng = np.random.default_rng(0)
     walk, run = walk_run.clip_id("humanoid3d_walk"), walk_run.clip_id("humanoid3d_run")
     walk_run.set_clip_weights([1.0 if i == run else 0.0 for i in range(walk_run.num_clips)])
@@ -124,7 +127,6 @@ def test_weighted_start_sampling(walk_run):
     share = np.mean((clips == walk) & (frames == 5))
     expected = 100 / (100 + walk_run.total_frames - 1)
     assert share == pytest.approx(expected, rel=0.2)
-    walk_run.set_clip_weights(np.ones(walk_run.num_clips))
     with pytest.raises(ValueError):
         walk_run.set_frame_weights(np.ones(3))
 

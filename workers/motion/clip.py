@@ -264,7 +264,11 @@ def process(character: Character, raw: RawClip, fps: float) -> MotionClip:
 
     A cyclic clip of period P is resampled to K = round(P * fps) frames spaced
     exactly P / K apart (within half a frame of 1 / fps), so that it repeats
-    seamlessly at the control rate; a one-shot clip gets frames at exactly 1 / fps.
+    seamlessly at the control rate; a one-shot clip gets frames at exactly 1 / fps, the last
+    one kept when the clip falls short of it by less than its frame time's rounding could make
+    it: files store a rounded frame time (a BVH's 0.033333 s makes 454 frames 15.133182 s
+    long, 0.005 of a frame short of 454 / 30 s), at most 1.5e-5 of it at six decimals and
+    30 Hz, so 1e-4 of the clip's length (plus 1e-3 of a frame, at most half a frame) is let go.
     """
     validate_raw(character, raw)
     if raw.loop:
@@ -275,7 +279,8 @@ def process(character: Character, raw: RawClip, fps: float) -> MotionClip:
         yaw, shift = cycle_transform(raw)
     else:
         dt = 1.0 / fps
-        k = int(np.floor(raw.duration * fps + 1e-6)) + 1
+        frames = raw.duration * fps
+        k = int(np.floor(frames + min(0.5, 1e-3 + 1e-4 * frames))) + 1
         times = np.arange(k) * dt
         yaw, shift = 0.0, np.zeros(3)
     raw = replace(raw, qpos=normalize_quats(character, raw.qpos))

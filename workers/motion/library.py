@@ -28,7 +28,7 @@ from workers.types import KinState
 
 log = logging.getLogger(__name__)
 
-CACHE_VERSION = "2"  # 2: BVH imports grounded, matched by naming conventions
+CACHE_VERSION = "3"  # 2: BVH imports grounded, matched by naming conventions; 3: last frame kept
 _FRAME_FIELDS = ("qpos", "qvel", "xpos", "xquat", "lin_vel", "ang_vel")
 
 
