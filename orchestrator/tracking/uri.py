@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from importlib.metadata import entry_points
 from urllib.parse import urlparse
 
@@ -13,10 +14,16 @@ TRACKING_SCHEMES = (
 
 
 def tracking_uri_error(uri: str) -> str | None:
-    """Why MLflow cannot use `uri` as a tracking store (its scheme is unknown), or None."""
+    """Why MLflow cannot use `uri` as a tracking store (an unknown scheme, a file store without the opt-in), or None."""
     if uri in ("databricks", "databricks-uc", "uc"):
         return None
     scheme = urlparse(uri).scheme  # as MLflow reads it
+    if scheme in ("", "file") and os.environ.get("MLFLOW_ALLOW_FILE_STORE", "").lower() not in ("true", "1"):
+        # MLflow 3's file store is in maintenance mode: it refuses to open without the opt-in.
+        return (
+            f"{uri!r} is an MLflow file store, which MLflow 3 opens only with MLFLOW_ALLOW_FILE_STORE=true; "
+            "use sqlite:///PATH/mlflow.db (or leave tracking.uri unset: a SQLite store in the run directory)"
+        )
     if not scheme or scheme.split("+")[0] in TRACKING_SCHEMES:
         return None
     plugins = {e.name for e in entry_points(group="mlflow.tracking_store")}

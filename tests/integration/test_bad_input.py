@@ -186,9 +186,26 @@ def test_unknown_tracking_scheme_is_refused_at_composition_and_at_run_time(tmp_p
     cfg.tracking.uri = "s3://bucket/mlruns"
     with pytest.raises(ConfigError, match=r"^tracking.uri: MLflow has no tracking store for the scheme 's3'"):
         preflight.check(cfg)
-    for uri in ("http://127.0.0.1:5000", "sqlite:///x.db", "postgresql+psycopg2://u@h/db", str(tmp_path / "mlruns")):
+    for uri in ("http://127.0.0.1:5000", "sqlite:///x.db", "postgresql+psycopg2://u@h/db"):
         cfg.tracking.uri = uri
-        preflight.check(cfg)  # known schemes and plain paths pass
+        preflight.check(cfg)  # known schemes pass
+
+
+def test_file_store_is_refused_without_mlflows_opt_in(tmp_path, capsys, monkeypatch):
+    # MLflow 3 raises deep in MlflowClient() for a file store unless MLFLOW_ALLOW_FILE_STORE=true.
+    monkeypatch.delenv("MLFLOW_ALLOW_FILE_STORE", raising=False)
+    uri = (tmp_path / "mlruns").as_uri()
+    code, err = run_main(tmp_path, capsys, "motion=walk", f"tracking.uri={uri}")
+    line = assert_refused(tmp_path, code, err, "tracking.uri", uri, "MLFLOW_ALLOW_FILE_STORE=true")
+    assert "sqlite:///" in line and not (tmp_path / "mlruns").exists()
+    cfg = validate(_plain(compose_smoke(tmp_path / "run", tmp_path / "cache", "motion=walk")))
+    for store in (uri, str(tmp_path / "mlruns")):  # file: and a bare path alike
+        cfg.tracking.uri = store
+        with pytest.raises(ConfigError, match="MLFLOW_ALLOW_FILE_STORE=true"):
+            preflight.check(cfg)
+        monkeypatch.setenv("MLFLOW_ALLOW_FILE_STORE", "true")
+        preflight.check(cfg)  # with the opt-in, as MLflow itself
+        monkeypatch.delenv("MLFLOW_ALLOW_FILE_STORE")
 
 
 def _plain(cfg):
