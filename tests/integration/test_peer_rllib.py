@@ -27,3 +27,18 @@ def test_measure_rllib_tiny():
     assert r["train_env_steps"] >= 64 and r["sample_env_steps"] >= 64
     for k in ("train_steps_per_s", "sample_steps_per_s"):
         assert math.isfinite(r[k]) and r[k] > 0
+
+
+@pytest.mark.slow
+@pytest.mark.ray
+def test_peer_counts_only_the_steps_each_side_trained_on():
+    # RLlib reports the steps of the sampling-only calls at its next train(); counted there, they
+    # made its end-to-end figure 1.5x too high. Each block must hold per_round batches, no more.
+    pytest.importorskip("ray.rllib")
+    from orchestrator.bench import peer
+
+    batch, envs, per_round = 64, 2, 1
+    r = peer.run(envs, (32, 32), batch, 32, rounds=3, warmup=1, seed=0, runtime="local", per_round=per_round)
+    for ours, theirs in r["end_to_end"]["steps_per_round"]:
+        assert ours == per_round * batch
+        assert per_round * batch <= theirs < per_round * (batch + 2 * envs)
