@@ -158,8 +158,7 @@ class GaussianPolicy(Policy):
 
     def base_action(self, sim: BatchedSim) -> np.ndarray:
         """The PD targets [M, A] that hold the reference's next pose (the zero offset of a residual policy)."""
-        ref = sim.library.state(sim.clip_id, sim.start_frame + sim.steps + 1)
-        return sim.character.qpos_to_action(ref.qpos).astype(np.float32)
+        return sim.library.pd_targets(sim.clip_id, sim.start_frame + sim.steps + 1)
 
     def set_weights(self, weights: Weights) -> None:
         self.module.load_state_dict(weights.state)

@@ -58,6 +58,8 @@ class MotionLibrary:
         # s does not change under yaw rotation and horizontal shifts, so one row per
         # stored frame serves every cycle of a looping clip.
         self._features = state_features(KinState(*(getattr(self, "_" + f) for f in _FRAME_FIELDS)))
+        # The PD targets that hold each frame's joint rotations (a cycle turns only the root).
+        self._pd_targets = character.qpos_to_action(self._qpos).astype(np.float32)
         # Start-state sampling: uniform over usable frames unless weights are set.
         self._frame_weights = np.ones(int(self.num_frames.sum()))
 
@@ -124,6 +126,11 @@ class MotionLibrary:
     def features(self, clip_ids: np.ndarray, frames: np.ndarray) -> np.ndarray:
         """The state features s [N, D] of the reference at the given frames (see `state`)."""
         return self._features[self._rows(np.asarray(clip_ids, dtype=int), np.asarray(frames, dtype=int))[0]]
+
+    def pd_targets(self, clip_ids: np.ndarray, frames: np.ndarray) -> np.ndarray:
+        """[N, A] float32 PD targets holding the reference's joints at the given frames:
+        `character.qpos_to_action(state(...).qpos)`, looked up instead of computed."""
+        return self._pd_targets[self._rows(np.asarray(clip_ids, dtype=int), np.asarray(frames, dtype=int))[0]]
 
     def _rows(self, clip_ids: np.ndarray, frames: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Rows of the flat arrays and the number of whole cycles past the clip's end."""
