@@ -54,12 +54,12 @@ def teacher_actions(
     clip_id = np.broadcast_to(np.asarray(clip_id, dtype=int), (n,))
     frame = np.broadcast_to(np.asarray(frame, dtype=int), (n,))
     with _inference(module):
-        s = body_state.features(torch.from_numpy(states)).numpy()
+        s = body_state.features_np(states)  # as the policy observes
         obs = imitation_observation(s, library.features(clip_id, frame + 1))
         mean = module.mean(torch.from_numpy(obs)).numpy()
     if not residual:
         return mean
-    base = character.qpos_to_action(library.state(clip_id, frame + 1).qpos).astype(np.float32)
+    base = library.pd_targets(clip_id, frame + 1)
     return mean + base
 
 

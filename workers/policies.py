@@ -49,8 +49,11 @@ def observation_dim(kind: str, state_dim: int) -> int:
 
 
 def observe(kind: str, sim: BatchedSim, bs: np.ndarray) -> np.ndarray:
-    """The observation [M, D] of the environments in body states bs [M, B, 13] at their current frames."""
-    s = body_state.features(torch.from_numpy(bs)).numpy()
+    """The observation [M, D] of the environments in body states bs [M, B, 13] at their current frames.
+
+    s is computed in NumPy (`body_state.features_np`, as the gym adapter does).
+    """
+    s = body_state.features_np(bs)
     if kind == "state":
         return s
     ref_next = sim.library.features(sim.clip_id, sim.start_frame + sim.steps + 1)

@@ -57,6 +57,7 @@ def main(argv: list[str] | None = None) -> int:
     peer.add_argument("--ours", default="ray", choices=("local", "ray"), help="our runtime")
     peer.add_argument("--workers", type=int, default=2, help="our rollout workers (the envs are split among them)")
     peer.add_argument("--overlap", action="store_true", help="ours: collect the next batch while PPO trains")
+    peer.add_argument("--sim-threads", type=int, default=1, help="ours: threads stepping each worker's simulator")
     learning = sub.add_parser("learning", help="the default run's seconds and samples until it tracks and stays up")
     learning.add_argument("--minutes", type=float, default=30.0, help="training wall time (evaluations not counted)")
     learning.add_argument("--eval-every", type=float, default=120.0, help="training seconds between evaluations")
@@ -157,7 +158,7 @@ def main(argv: list[str] | None = None) -> int:
         try:
             result = bench_peer.run(
                 args.envs, hidden, args.batch, args.minibatch, args.rounds, args.warmup, args.seed,
-                args.ours, args.workers, args.overlap,
+                args.ours, args.workers, args.overlap, sim_threads=args.sim_threads,
             )  # fmt: skip
         except ImportError as e:
             print(e, file=sys.stderr)

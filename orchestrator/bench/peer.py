@@ -51,6 +51,7 @@ def _our_trainer(
     runtime: str = "local",
     workers: int = 1,
     overlap: bool = False,
+    sim_threads: int = 1,
 ):
     from orchestrator.build import build_runtime
     from orchestrator.components import load_world
@@ -67,6 +68,7 @@ def _our_trainer(
         f"runtime={runtime}",
         f"runtime.rollout_workers={workers}",
         f"runtime.envs_per_worker={max(1, num_envs // workers)}",
+        f"runtime.sim_threads={sim_threads}",
         f"algo.loop.collect_steps={max(1, batch // num_envs)}",
         f"algo.loop.overlap={str(overlap).lower()}",
         f"algo.ppo.policy_hidden={sizes}",
@@ -100,6 +102,7 @@ def run(
     workers: int = 1,
     overlap: bool = False,
     per_round: int = 2,
+    sim_threads: int = 1,
 ) -> dict[str, Any]:
     import torch
 
@@ -114,7 +117,9 @@ def run(
     env_config = {"max_episode_steps": 300}
     algo = None
     with TemporaryDirectory() as tmp:
-        cfg, rt, trainer = _our_trainer(tmp, num_envs, hidden, batch, minibatch, seed, runtime, workers, overlap)
+        cfg, rt, trainer = _our_trainer(
+            tmp, num_envs, hidden, batch, minibatch, seed, runtime, workers, overlap, sim_threads
+        )
         try:
             algo = peer_rllib.build_config(num_envs, hidden, batch, minibatch, seed, 0, env_config).build_algo()
             steps = cfg.algo.loop.collect_steps
@@ -167,7 +172,7 @@ def run(
         "rounds": rounds,
         "iterations_per_round": per_round,
         "torch_threads": 1,
-        "ours": {"runtime": runtime, "rollout_workers": workers, "overlap": overlap},
+        "ours": {"runtime": runtime, "rollout_workers": workers, "overlap": overlap, "sim_threads": sim_threads},
         "rllib": {"env_runners": 0},
     }
     for key, values in pairs.items():
@@ -186,7 +191,8 @@ def format_table(r: dict[str, Any]) -> str:
         f"peer benchmark: tracker on walk, {r['num_envs']} envs, MLPs {r['hidden']}, batch {r['train_batch_size']}"
         f"/{r['minibatch_size']}, 1 epoch, 1 torch thread, {r['rounds']} interleaved rounds, "
         f"RLlib {r['rllib_version']} (0 env runners); ours: runtime={r['ours']['runtime']}, "
-        f"{r['ours']['rollout_workers']} worker(s), overlap={r['ours']['overlap']}",
+        f"{r['ours']['rollout_workers']} worker(s), overlap={r['ours']['overlap']}, "
+        f"sim_threads={r['ours'].get('sim_threads', 1)}",
         f"{'measurement':<14}{'ours steps/s':>14}{'RLlib steps/s':>15}{'ratio (median of pairs)':>26}",
     ]
     for key in ("sampling", "end_to_end"):

@@ -16,6 +16,13 @@ def test_features_match_numpy(walk_run):
     np.testing.assert_allclose(got, state_features(kin), atol=1e-5)
 
 
+def test_numpy_features_of_body_states_are_the_torch_ones(walk_run):
+    bs = B.pack(walk_run.state(np.array([0, 1, 0, 1]), np.array([0, 7, 50, 123])))
+    got = B.features_np(bs)
+    assert got.dtype == np.float32 and got.shape == (4, 16 * bs.shape[1] + 3)
+    np.testing.assert_allclose(got, B.features(torch.from_numpy(bs)).numpy(), atol=2e-6)
+
+
 def test_features_of_batched_time_axes(walk_run):
     kin = walk_run.state(np.zeros(6, int), np.arange(6))
     bs = torch.as_tensor(B.pack(kin))

@@ -173,3 +173,12 @@ def test_deepmimic_format_round_trip(character, tmp_path):
     np.testing.assert_allclose(back.qpos, raw.qpos, atol=1e-12)
     np.testing.assert_allclose(back.times, raw.times, atol=1e-12)
     assert back.loop == raw.loop
+
+
+def test_pd_targets_are_the_reference_poses_targets_in_every_cycle(walk_run, character):
+    # A cycle turns and moves only the root, so the joints' targets are looked up per stored frame.
+    rng = np.random.default_rng(0)
+    clips = rng.integers(0, walk_run.num_clips, 200)
+    frames = rng.integers(0, 5 * walk_run.num_frames.max(), 200)  # looping clips wrap, one-shot ones hold
+    want = character.qpos_to_action(walk_run.state(clips, frames).qpos).astype(np.float32)
+    np.testing.assert_array_equal(walk_run.pd_targets(clips, frames), want)
