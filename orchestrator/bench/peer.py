@@ -10,7 +10,10 @@ RLlib's, and each pair gives a ratio; the table reports each side's median rate
 and the median of the pairwise ratios, so that drift of a shared machine cancels.
 
 - end to end: one training iteration (collect the batch, PPO update, weights
-  published to the workers): our `Trainer.step()`, RLlib's `algo.train()`.
+  published to the workers): our `Trainer.step()`, RLlib's `algo.train()`. RLlib's
+  steps are its `num_env_steps_sampled_lifetime` difference, less the steps of the
+  previous round's sampling-only call, which RLlib folds into its next `train()`
+  result (counted as trained, they made its figure 1.5x too high before 2026-12-02).
 - sampling only: the batch's environment steps with policy inference: our
   workers' `collect` calls (at once, on Ray), RLlib's `env_runner.sample`.
 
