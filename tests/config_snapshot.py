@@ -1,0 +1,121 @@
+"""What a refactor must leave unchanged, written down so that two checkouts can be compared.
+
+    python -m tests.config_snapshot configs --out A.json          # every conf/algo x conf/scale, resolved, and hashes
+    python -m tests.config_snapshot history --out B.json [KEY=V..] # a short default run, runtime=local, its metrics
+    python -m tests.config_snapshot compare A.json A2.json         # what differs (exit 1 if anything does)
+
+`configs` composes `algo=<name> scale=<scale>` for every file of conf/algo and conf/scale and records the
+validated config (as a dict) and its stage hash, upstream stages' hashes included (composed as a run would,
+without MLflow). `history` runs the default experiment in this process with tracking into a fresh SQLite
+store and records every metric's history except those that measure time or the machine (throughput/,
+system/, *_s). Used for the layout change (the configs and histories before and after are compared).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import tempfile
+from dataclasses import asdict
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+CONF = ROOT / "conf"
+
+
+def _api():
+    """compose, validate, config_hash, upstream_config wherever this checkout keeps them."""
+    try:  # the rebuilt layout
+        from orchestrator.compose import compose, validate
+        from orchestrator.stages import config_hash, upstream_config
+    except ImportError:  # before it
+        from orchestrator.schema import validate
+        from orchestrator.stages import compose, config_hash, upstream_config
+    return compose, validate, config_hash, upstream_config
+
+
+def chain_hash(cfg, config_hash, upstream_config) -> str:
+    """The stage hash a run of `cfg` gets, its needs composed and hashed first (as stages.resolve does)."""
+    above = {role: chain_hash(upstream_config(cfg, spec, role), config_hash, upstream_config)
+             for role, spec in cfg.algo.needs.items() if not spec.startswith("run:")}
+    return config_hash(cfg, above)
+
+
+def configs() -> dict:
+    compose, validate, config_hash, upstream_config = _api()
+    out = {}
+    for algo in sorted(p.stem for p in (CONF / "algo").glob("*.yaml")):
+        for scale in sorted(p.stem for p in (CONF / "scale").glob("*.yaml")):
+            cfg = validate(compose([f"algo={algo}", f"scale={scale}", "run_dir=outputs/snapshot"]))
+            out[f"{algo}/{scale}"] = {"config": asdict(cfg), "stage_hash": chain_hash(cfg, config_hash, upstream_config)}
+    return out
+
+
+TIMING = ("throughput/", "system/")
+
+
+def history(overrides: list[str]) -> dict:
+    from mlflow import MlflowClient
+
+    with tempfile.TemporaryDirectory() as tmp:
+        args = ["runtime=local", "seed=0", "eval.video=false", "progress=false", f"run_dir={tmp}/run",
+                f"hydra.run.dir={tmp}/run", *overrides]
+        subprocess.run([sys.executable, "-m", "orchestrator", *args], check=True, cwd=ROOT)
+        client = MlflowClient(f"sqlite:///{tmp}/run/mlflow.db")
+        exp = [e.experiment_id for e in client.search_experiments()]
+        (run,) = client.search_runs(exp)
+        out = {}
+        for key in sorted(run.data.metrics):
+            if key.startswith(TIMING) or key.endswith("_s"):
+                continue
+            out[key] = [(m.step, m.value) for m in sorted(client.get_metric_history(run.info.run_id, key),
+                                                         key=lambda m: (m.step, m.timestamp))]
+        return out
+
+
+def _strip_targets(x):
+    """Module paths of classes (`_target_`) moved on purpose; compare the class names only."""
+    if isinstance(x, dict):
+        return {k: (v.rpartition(".")[2] if k == "_target_" and isinstance(v, str) else _strip_targets(v))
+                for k, v in x.items()}
+    if isinstance(x, list):
+        return [_strip_targets(v) for v in x]
+    return x
+
+
+def compare(a: dict, b: dict, path: str = "") -> list[str]:
+    if isinstance(a, dict) and isinstance(b, dict):
+        out = []
+        for k in sorted(set(a) | set(b)):
+            if k not in a or k not in b:
+                out.append(f"{path}{k}: only in {'second' if k in b else 'first'}")
+            else:
+                out += compare(a[k], b[k], f"{path}{k}.")
+        return out
+    return [] if a == b else [f"{path[:-1]}: {a!r} != {b!r}"[:300]]
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("what", choices=("configs", "history", "compare"))
+    p.add_argument("files", nargs="*", help="compare: two snapshots; history: Hydra overrides")
+    p.add_argument("--out")
+    p.add_argument("--keep-targets", action="store_true", help="compare: _target_ module paths too")
+    args = p.parse_intermixed_args()
+    if args.what == "compare":
+        a, b = (json.loads(Path(f).read_text()) for f in args.files)
+        if not args.keep_targets:
+            a, b = _strip_targets(a), _strip_targets(b)
+        diff = compare(a, b)
+        print("\n".join(diff) if diff else "identical")
+        print(f"{len(diff)} differences")
+        sys.exit(1 if diff else 0)
+    data = configs() if args.what == "configs" else history(args.files)
+    text = json.dumps(data, indent=1, sort_keys=True, default=str)
+    Path(args.out).write_text(text) if args.out else print(text)
+
+
+if __name__ == "__main__":
+    main()
