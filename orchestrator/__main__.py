@@ -15,7 +15,8 @@ import hydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
-from orchestrator.schema import ConfigError, register, validate
+from orchestrator.compose import register, validate
+from orchestrator.schema import ConfigError
 
 register()
 
@@ -56,7 +57,7 @@ def main(dcfg: DictConfig) -> float | None:
         cfg.tracking.experiment = parent["experiment"]
     from orchestrator.checkpoint import CheckpointError
     from orchestrator.preflight import InputError, check
-    from orchestrator.stages import StageError
+    from orchestrator.upstream import StageError
     from workers.motion.errors import ClipError
     from workers.sim.character import CharacterError
 

@@ -1,4 +1,9 @@
-"""Build the experiment from a validated config and run it: tracker, runtime, trainer."""
+"""Build the experiment from a validated config and run it: its upstream stages, run logger, runtime and trainer.
+
+`run(cfg)` trains `cfg`'s method into one MLflow run (reopened on resume), after resolving the
+stages it needs (`orchestrator.stages`, which trains a missing one through `train_stage`);
+`untracked_trainer` wires the same trainer without tracking, for the benchmarks.
+"""
 
 from __future__ import annotations
 
@@ -14,16 +19,15 @@ import torch
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
-from orchestrator import checkpoint, stages
-from orchestrator.components import load_world
-from orchestrator.loop import Trainer
+from orchestrator import checkpoint, preflight, stages
+from orchestrator.console import closing, where_to_watch
 from orchestrator.runtime.base import Runtime
 from orchestrator.schema import Config
-from orchestrator.stages import StageError, Upstream
-from orchestrator.summary import closing, where_to_watch
-from orchestrator.tracking.base import NoOpTracker, Tracker, flatten
-
-RUN_FILE = "run.json"
+from orchestrator.tracking.base import NoOpLogger, RunLogger, flatten
+from orchestrator.tracking.uri import store_uri
+from orchestrator.trainer import Trainer
+from orchestrator.upstream import StageError, Upstream
+from orchestrator.world import load_character, load_character_and_library
 
 
 def _log(message: str) -> None:
@@ -38,17 +42,17 @@ def git_commit() -> str:
         return "unknown"
 
 
-def build_tracker(
+def build_logger(
     cfg: Config, run_id: str | None, parent_run_id: str | None = None, extra_tags: dict[str, str] | None = None
-) -> Tracker:
+) -> RunLogger:
     if not cfg.tracking.enabled:
-        return NoOpTracker()
-    from orchestrator.tracking.mlflow import MlflowTracker
+        return NoOpLogger()
+    from orchestrator.tracking.mlflow import MlflowLogger  # loads mlflow: only when tracking
 
     tags = {"git_commit": git_commit(), "stage": cfg.algo.name, "algo": cfg.algo.name, "preset": cfg.preset}
     tags["host"] = socket.gethostname()
     tags.update(extra_tags or {})
-    return MlflowTracker(
+    return MlflowLogger(
         uri=cfg.tracking.uri,
         experiment=cfg.tracking.experiment or cfg.preset,
         run_name=cfg.tracking.run_name,
@@ -79,11 +83,21 @@ def hydra_record() -> list[Path]:
     return [where / name for name in ("config.yaml", "overrides.yaml", "hydra.yaml") if (where / name).exists()]
 
 
-def store_of(cfg: Config) -> str:
-    """The tracking store this run writes to (where its upstream stages are looked for and kept)."""
-    from orchestrator.tracking.mlflow import embedded_uri
+def train_stage(cfg: Config, upstream: dict[str, Upstream], stage_hash: str) -> str:
+    """Train an upstream stage that the store does not hold (`stages.resolve` asks); its MLflow run's id."""
+    run(cfg, upstream=upstream, stage_hash=stage_hash)
+    return json.loads((Path(cfg.run_dir) / checkpoint.RUN_FILE).read_text())["run_id"]
 
-    return cfg.tracking.uri or embedded_uri(cfg.run_dir)
+
+def untracked_trainer(cfg: Config) -> tuple[Runtime, Trainer]:
+    """The runtime and the trainer of `cfg` (a method without upstream stages), logging nowhere: the benchmarks'
+    wiring. The caller shuts the runtime down."""
+    runtime = build_runtime(cfg)
+    try:
+        return runtime, Trainer(cfg, runtime, NoOpLogger(), load_character(cfg))
+    except BaseException:
+        runtime.shutdown()
+        raise
 
 
 def run(
@@ -96,47 +110,45 @@ def run(
     run_dir = Path(cfg.run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(cfg.seed)
-    character, _ = load_world(cfg)  # a clip that does not load fails here, before any process starts
+    character, _ = load_character_and_library(cfg)  # a clip that does not load fails here, before any process starts
     if upstream is None and cfg.algo.needs:
         if not cfg.tracking.enabled:
             raise StageError(f"the {cfg.algo.name} method reads upstream stages from MLflow: tracking.enabled=false")
         experiment = cfg.tracking.experiment or cfg.preset
-        upstream = stages.resolve(cfg, store_of(cfg), run_dir, experiment, log=_log)
+        upstream = stages.resolve(cfg, store_uri(cfg.tracking.uri, run_dir), run_dir, experiment, train_stage, log=_log)
     upstream = upstream or {}
     if stage_hash is None:
         stage_hash = stages.config_hash(cfg, {r: u.stage_hash for r, u in upstream.items()})
-    run_file = run_dir / RUN_FILE
+    run_file = run_dir / checkpoint.RUN_FILE
     resume_from = checkpoint.latest(run_dir / "checkpoints") if cfg.resume else None
     run_id = json.loads(run_file.read_text())["run_id"] if cfg.resume and run_file.exists() else None
     if resume_from is not None:  # a checkpoint that does not fit is refused before the run is reopened
-        from orchestrator import preflight
-
         preflight.resume_checkpoint(cfg, character)
     if cfg.resume and resume_from is None:
         print(f"resume: no checkpoint in {run_dir / 'checkpoints'}; starting from scratch", file=sys.stderr)
     tags = {"stage_hash": stage_hash, **stages.lineage_tags(upstream)}
-    tracker = build_tracker(cfg, run_id, parent_run_id, tags)
+    logger = build_logger(cfg, run_id, parent_run_id, tags)
     if run_id is None:
         resolved: dict[str, Any] = asdict(cfg)
-        tracker.log_params(flatten(resolved))
-        tracker.log_dict(resolved, "config.json")
+        logger.log_params(flatten(resolved))
+        logger.log_dict(resolved, "config.json")
         for path in hydra_record():
-            tracker.log_artifact(str(path), "hydra")
-    run_file.write_text(json.dumps({"run_id": tracker.run_id}))
+            logger.log_artifact(str(path), "hydra")
+    run_file.write_text(json.dumps({"run_id": logger.run_id}))
     runtime = build_runtime(cfg)
     status = "FAILED"
     try:
-        trainer = Trainer(cfg, runtime, tracker, character, upstream)
-        _log(where_to_watch(cfg, tracker, runtime))
+        trainer = Trainer(cfg, runtime, logger, character, upstream)
+        _log(where_to_watch(cfg, logger, runtime))
         if resume_from is not None:
             trainer.restore(resume_from)
             print(f"resumed from {resume_from} at iteration {trainer.state.iteration}", file=sys.stderr)
         summary = trainer.run()
         status = "FINISHED"
-        print(closing(cfg, tracker, trainer.state.baseline, summary, trainer.model_uri), flush=True)
+        print(closing(cfg, logger, trainer.state.baseline, summary, trainer.model_uri), flush=True)
         return summary
     finally:
-        tracker.close(status)
+        logger.close(status)
         # A run created late (the server was down at the start) has its id only now.
-        run_file.write_text(json.dumps({"run_id": tracker.run_id}))
+        run_file.write_text(json.dumps({"run_id": logger.run_id}))
         runtime.shutdown()

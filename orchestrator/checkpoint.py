@@ -3,7 +3,8 @@
 NumPy arrays (replay contents, RNG states) are stored as tensors under a marker
 so that the safe unpickler can read them back. A file that cannot be used (truncated,
 not a weights file, written for networks of other sizes) is a `CheckpointError` naming
-it and what is wrong; it is never deleted or overwritten here.
+it and what is wrong; it is never deleted or overwritten here. Beside the checkpoints, a run
+directory holds `RUN_FILE`, the id of the MLflow run that a resume reopens.
 """
 
 from __future__ import annotations
@@ -18,6 +19,8 @@ from typing import Any
 
 import numpy as np
 import torch
+
+RUN_FILE = "run.json"  # in the run directory: {"run_id": <the MLflow run a resume continues>}
 
 _NUMPY = "__numpy__"
 # What every checkpoint the trainer writes holds besides its components' states (orchestrator.loop).

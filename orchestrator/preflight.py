@@ -21,8 +21,11 @@ from pathlib import Path
 import torch
 
 from orchestrator import checkpoint
+from orchestrator.algos.base import method_class
 from orchestrator.schema import Config, ConfigError
 from orchestrator.tracking.uri import tracking_uri_error
+from orchestrator.trainer import LoopState
+from orchestrator.world import load_character_and_library
 from workers.motion.errors import ClipError
 from workers.sim.character import Character, CharacterError
 
@@ -37,7 +40,7 @@ def check(cfg: Config) -> None:
         problem = tracking_uri_error(cfg.tracking.uri)
         if problem:
             raise ConfigError(f"tracking.uri: {problem}")
-    character = world(cfg)
+    character = character_and_clips(cfg)
     if cfg.runtime.address and cfg.runtime._target_.endswith("RayRuntime"):
         from orchestrator.runtime.ray import AddressError, check_address
 
@@ -50,12 +53,10 @@ def check(cfg: Config) -> None:
         resume_checkpoint(cfg, character)
 
 
-def world(cfg: Config) -> Character:
+def character_and_clips(cfg: Config) -> Character:
     """The character and the motion library load (the library is built, and its clips cached, here)."""
-    from orchestrator.components import load_world
-
     try:
-        character, _ = load_world(cfg)
+        character, _ = load_character_and_library(cfg)
     except CharacterError as e:
         raise InputError(f"character.xml={cfg.character.xml}: {e.message}") from None
     except ClipError as e:
@@ -65,7 +66,7 @@ def world(cfg: Config) -> Character:
 
 def resume_run(cfg: Config) -> str | None:
     """The MLflow run a resume continues (run_dir/run.json), or None; InputError if the file is unreadable."""
-    path = Path(cfg.run_dir) / "run.json"  # orchestrator.build.RUN_FILE
+    path = Path(cfg.run_dir) / checkpoint.RUN_FILE
     if not path.exists():
         return None
     try:
@@ -80,9 +81,6 @@ def resume_run(cfg: Config) -> str | None:
 def resume_checkpoint(cfg: Config, character: Character) -> Path | None:
     """The checkpoint a resume would start from, loaded into this config's components; InputError naming
     the file and what is wrong (for a size mismatch, the tensor and both shapes). The file is only read."""
-    from orchestrator.algos import method_class
-    from orchestrator.loop import LoopState
-
     path = checkpoint.latest(Path(cfg.run_dir) / "checkpoints")
     if path is None:
         return None

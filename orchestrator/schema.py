@@ -1,19 +1,15 @@
-"""The configuration schema: one dataclass per config group, registered in Hydra's ConfigStore.
+"""The configuration schema: one dataclass per config group, each field documented where it is declared.
 
-`conf/` YAML is type-checked against these when Hydra composes it, and
-`validate(cfg)` turns the composed config into these objects, whose
-`__post_init__` checks refuse bad values with the key named, before any process
-starts. The learners' own configs (`WorldModelConfig`, `VAEConfig`) are used as
-they are, so a field is documented once, where it is declared.
+`conf/` YAML is type-checked against these when Hydra composes it (`orchestrator.compose` registers
+`Config` in Hydra's ConfigStore and validates), and each dataclass's `__post_init__` refuses a bad
+value with its key named, before any process starts. The learners' own configs (`WorldModelConfig`,
+`VAEConfig`, ...) are used as they are, so a field is documented once, where it is declared. This
+module holds only the dataclasses (and `ConfigError`); it reads no method's code.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
-
-from hydra.core.config_store import ConfigStore
-from omegaconf import DictConfig, OmegaConf
 
 from orchestrator.tracking.uri import tracking_uri_error
 from workers.learners.discriminator import DiscriminatorConfig
@@ -40,17 +36,6 @@ LOCOMOTION = [
 
 class ConfigError(ValueError):
     """A config value that cannot work; the message starts with its dotted key."""
-
-
-# The learners' configs name their keys from their own root; here they live under algo.
-_KEY_ROOTS = {"vae.": "algo.vae.", "world_model.": "algo.world_model.", "task.": "algo.task."}
-
-
-def _full_key(message: str) -> str:
-    for short, full in _KEY_ROOTS.items():
-        if message.startswith(short):
-            return full + message[len(short) :]
-    return message
 
 
 @dataclass
@@ -413,88 +398,3 @@ class Config:
     # '+stage_overrides.tracker=["algo.loop.iterations=600"]' trains a longer expert for every stage above
     # this run, '+stage_overrides.demos=["algo.needs.expert=run:<id>"]' uses a given expert run.
     stage_overrides: dict[str, list[str]] = field(default_factory=dict)
-
-
-def register() -> None:
-    cs = ConfigStore.instance()
-    cs.store(name="schema", node=Config)
-
-
-def validate(cfg: DictConfig | dict[str, Any]) -> Config:
-    """The composed config as schema objects; raises ConfigError naming the key of a bad value."""
-    if not isinstance(cfg, DictConfig):
-        cfg = OmegaConf.create(cfg)
-    try:
-        structured = OmegaConf.merge(OmegaConf.structured(Config), cfg)
-    except Exception as e:  # OmegaConf's type errors name the full key
-        raise ConfigError(str(e)) from None
-    method = _method(structured.algo)
-    for section, schema in SECTIONS.items():
-        node = structured.algo[section]
-        if section not in method.sections:
-            _check_unused(structured.algo, section, schema, method)
-            continue
-        try:  # the learners' own checks, with the section's key in front
-            OmegaConf.to_object(node)
-        except ConfigError:
-            raise
-        except ValueError as e:
-            raise ConfigError(_section_key(section, str(e))) from None
-    try:
-        out = OmegaConf.to_object(structured)
-    except ValueError as e:
-        raise ConfigError(_full_key(str(e))) from None
-    for section in SECTIONS:
-        if section not in method.sections:
-            setattr(out.algo, section, None)
-    _check_needs(out.algo, method)
-    if out.algo.pulse is not None and out.algo.pulse.prior_action and out.algo.vae.prior != "learned":
-        raise ConfigError(
-            f"algo.pulse.prior_action: a residual on the prior's mean (PULSE Eq. 4) needs algo.vae.prior=learned, "
-            f"got {out.algo.vae.prior!r} (set algo.pulse.prior_action=false)"
-        )
-    return out
-
-
-def _check_needs(algo: AlgoConfig, method: type) -> None:
-    wanted = tuple(getattr(method, "needs", ()))
-    for role in algo.needs:
-        if role not in wanted:
-            has = ", ".join(wanted) or "none"
-            raise ConfigError(
-                f"algo.needs.{role}: the {algo.name} method does not use a {role} stage (it needs: {has})"
-            )
-    for role in wanted:
-        spec = algo.needs.get(role)
-        if not spec or not str(spec).strip():
-            raise ConfigError(
-                f"algo.needs.{role}: the {algo.name} method needs a {role} stage (a stage such as "
-                f"'tracker', or 'run:<run id>')"
-            )
-
-
-def _section_key(section: str, message: str) -> str:
-    full = _full_key(message)
-    return full if full.startswith("algo.") else f"algo.{section}: {message}"
-
-
-def _method(algo: DictConfig) -> type:
-    from orchestrator.algos import method_class
-
-    try:
-        return method_class(algo._target_)
-    except Exception as e:
-        raise ConfigError(f"algo._target_: cannot use {algo._target_!r} as a method ({e})") from None
-
-
-def _check_unused(algo: DictConfig, section: str, schema: type, method: type) -> None:
-    """A section the method does not use must be left at its defaults."""
-    given = OmegaConf.to_container(algo[section]) if algo[section] is not None else None
-    default = OmegaConf.to_container(OmegaConf.structured(schema))
-    if given is None or given == default:
-        return
-    key = next((k for k in given if given[k] != default.get(k)), None)
-    uses = ", ".join(method.sections) or "none"
-    raise ConfigError(
-        f"algo.{section}.{key}: the {algo.name} method ({algo._target_}) has no {section} component (it uses: {uses})"
-    )

@@ -13,9 +13,9 @@ from __future__ import annotations
 from dataclasses import replace
 from typing import Any
 
-from orchestrator.algos import Component
+from orchestrator.algos.base import Component
 from orchestrator.algos.onpolicy import OnPolicy
-from orchestrator.components_ppo import DiscriminatorActor
+from orchestrator.components.amp import DiscriminatorActor
 from workers.rollout import AMPFeatures
 
 
@@ -35,10 +35,11 @@ class AMP(OnPolicy):
     def sim_config(cls, cfg):
         return replace(super().sim_config(cfg), tracking_error_m=0.0)
 
-    def rewards(self, t, trajectories: list[Any]) -> tuple[Any, dict[str, Any]]:
-        disc = t.handles["discriminator"]
-        rewards = t.rt.call(disc, "rewards", *trajectories)  # before the discriminator learns from them
-        return rewards, {"discriminator": t.rt.call(disc, "train", *trajectories)}
+    def rewards_and_updates(self, trainer, trajectories: list[Any]) -> tuple[Any, dict[str, Any]]:
+        """The discriminator scores the trajectories (style reward, Eq. 7, mixed by Eq. 4), then learns from them."""
+        disc, rt = trainer.handles["discriminator"], trainer.runtime
+        rewards = rt.call(disc, "rewards", *trajectories)  # before the discriminator learns from them
+        return rewards, {"discriminator": rt.call(disc, "train", *trajectories)}
 
     def progress(self, metrics: dict[str, float]) -> dict[str, str]:
         return {**super().progress(metrics), "style": f"{metrics.get('disc/style_reward', float('nan')):.3g}"}

@@ -24,21 +24,21 @@ from __future__ import annotations
 import time
 from typing import Any
 
-from orchestrator.algos import Component, Method, UpdateSchedule
-from orchestrator.components import ReplayActor, VAEActor, WorldModelActor, load_world
-from orchestrator.evaluate import evaluate_controller
+from orchestrator.algos.base import Component, ReplayFed, UpdateSchedule
+from orchestrator.components.controlvae import VAEActor, WorldModelActor
+from orchestrator.components.replay import ReplayActor
+from orchestrator.evaluation.protocols import evaluate_controller
 from workers.balancing import FrameValues, TrackingReward
 from workers.learners.vae import state_weight_vector
 from workers.policies import VAEPolicy
 
 
-class ControlVAE(Method):
+class ControlVAE(ReplayFed):
     sections = ("world_model", "vae")
+    expert = "vae"  # a demos stage can take its posterior as the expert
 
     def __init__(self, cfg, character, upstream=None):
         super().__init__(cfg, character, upstream)
-        self.pending: list[Any] = []
-        self.world = None
         loop = cfg.algo.loop
         # Each learner's updates by its own replay ratio (the credit between iterations is checkpointed).
         self.schedules = {key: UpdateSchedule.of(cfg, key) for key in ("world_model", "vae")}
@@ -67,34 +67,25 @@ class ControlVAE(Method):
         return {"switch_rate": cfg.algo.loop.switch_rate, "switch_window": cfg.algo.loop.switch_window}
 
     # The iteration -----------------------------------------------------------------
-    def publish(self, t) -> None:
+    def publish(self, trainer) -> None:
         """World model → VAE learner; VAE → object store once per version."""
-        rt, h = t.rt, t.handles
+        rt, h = trainer.runtime, trainer.handles
         rt.call(h["vae"], "set_world_model_weights", rt.call(h["world_model"], "get_weights"))
-        t.publish(rt.get(rt.call(h["vae"], "get_weights")))
+        trainer.publish(rt.get(rt.call(h["vae"], "get_weights")))
 
-    def start(self, t) -> None:
+    def start(self, trainer) -> None:
         if self.values is not None:  # resumed: the workers draw their starts by the restored values
-            t.configure_workers(start_weights=self.values.weights())
-        self.publish(t)
-        self.pending = t.collect(self.cfg.algo.loop.collect_steps, self.cfg.algo.loop.staleness)
+            trainer.configure_workers(start_weights=self.values.weights())
+        super().start(trainer)
 
-    def step(self, t) -> tuple[int, dict[str, float]]:
-        cfg, rt, h, schedules = self.cfg, t.rt, t.handles, self.schedules
+    def step(self, trainer) -> tuple[int, dict[str, float]]:
+        cfg, rt, h, schedules = self.cfg, trainer.runtime, trainer.handles, self.schedules
         loop = cfg.algo.loop
         t0 = time.perf_counter()
-        # Trajectories go from the workers to the replay actor directly; only their summaries come back.
-        infos = rt.get([rt.call(h["replay"], "add_trajectory", f) for f in self.pending])
+        infos, collected = self.exchange(trainer, "replay")
         t_sample = time.perf_counter() - t0
-        for info in infos:
-            t.check_alive("replay", info.pop("incarnation"))
-        collected = sum(i["transitions"] for i in infos)
         replay_size = infos[-1]["size"]
-        staleness = [t.weights_version - i["version"] for i in infos]
-        for w, info in enumerate(infos):
-            t.worker_came_back(w, info["version"])
-        t.worker_restarts()
-        self.pending = t.collect(loop.collect_steps, loop.staleness)
+        staleness = [trainer.weights_version - i["version"] for i in infos]
 
         t1 = time.perf_counter()
         metrics: dict[str, float] = {}
@@ -107,14 +98,14 @@ class ControlVAE(Method):
             wm_metrics = rt.call(h["world_model"], "train", wm_batches)
             vae_metrics = rt.call(h["vae"], "train", vae_batches)
             for prefix, m in (("world_model", rt.get(wm_metrics)), ("vae", rt.get(vae_metrics))):
-                t.check_alive(prefix, m.pop("incarnation"))
+                trainer.check_alive(prefix, m.pop("incarnation"))
                 metrics.update({f"{prefix}/{k}": v for k, v in m.items()})
-            if loop.balance_every and (t.state.iteration + 1) % loop.balance_every == 0:
-                metrics.update(self.rebalance(t))
+            if loop.balance_every and (trainer.state.iteration + 1) % loop.balance_every == 0:
+                metrics.update(self.rebalance(trainer))
         t_update = time.perf_counter() - t1
 
         t2 = time.perf_counter()
-        self.publish(t)
+        self.publish(trainer)
         t_publish = time.perf_counter() - t2
         stats = rt.get(rt.call(h["replay"], "stats"))
         metrics.update({f"replay/{k}": float(v) for k, v in stats.items()})
@@ -138,17 +129,18 @@ class ControlVAE(Method):
                 metrics[f"rollout/{key}"] = float(sum(i[key] for i in infos))
         return collected, metrics
 
-    def rebalance(self, t) -> dict[str, float]:
+    def rebalance(self, trainer) -> dict[str, float]:
         """Data balancing: the frames' values from the stored trajectories (Eq. 18–19), new start weights
         for the workers; the value and start share of each clip as metrics."""
-        if self.world is None:
-            self.world = load_world(self.cfg)
-        library = self.world[1]
+        _, library = self.character_and_library()
         if self.values is None:
             self.values = FrameValues(library.total_frames, *self.balance)
-        count, total = t.rt.get(t.rt.call(t.handles["replay"], "frame_returns", self.values.values, self.values.gamma))
+        rt = trainer.runtime
+        count, total = rt.get(
+            rt.call(trainer.handles["replay"], "frame_returns", self.values.values, self.values.gamma)
+        )
         seen = self.values.update(count, total)
-        t.configure_workers(start_weights=self.values.weights())
+        trainer.configure_workers(start_weights=self.values.weights())
         summary = self.values.clip_summary(library)
         metrics = {"balance/frames_seen": float(len(seen)) / library.total_frames}
         for k, name in enumerate(library.names):
@@ -156,14 +148,12 @@ class ControlVAE(Method):
             metrics[f"balance/start_share/{name}"] = float(summary["share"][k])
         return metrics
 
-    def finish(self, t) -> None:
-        t.rt.get(self.pending)  # let the last collection finish before saving
-
-    def evaluate(self, t, final: bool) -> dict[str, float]:
-        if self.world is None:  # the driver's own character and library, loaded once
-            self.world = load_world(self.cfg)
-        weights = t.rt.get(t.rt.call(t.handles["vae"], "get_weights"))
-        return evaluate_controller(self.cfg, *self.world, weights, t.tracker, t.state.iteration, final)
+    def evaluate(self, trainer, final: bool) -> dict[str, float]:
+        rt = trainer.runtime
+        weights = rt.get(rt.call(trainer.handles["vae"], "get_weights"))
+        return evaluate_controller(
+            self.cfg, *self.character_and_library(), weights, trainer.logger, trainer.state.iteration, final
+        )
 
     def progress(self, metrics: dict[str, float]) -> dict[str, str]:
         return {"vae": f"{metrics.get('vae/rec', float('nan')):.3g}"}
@@ -178,7 +168,5 @@ class ControlVAE(Method):
         for key, schedule in self.schedules.items():
             schedule.load_state_dict(state, key)
         if state.get("values") is not None:
-            if self.world is None:
-                self.world = load_world(self.cfg)
-            self.values = FrameValues(self.world[1].total_frames, *self.balance)
+            self.values = FrameValues(self.character_and_library()[1].total_frames, *self.balance)
             self.values.load_state_dict(state["values"])

@@ -25,48 +25,16 @@ from typing import Any
 
 import numpy as np
 
-from orchestrator.algos import Component, Method, method_class
-from orchestrator.components import sim_config
-from orchestrator.stages import StageError, Upstream
+from orchestrator.algos.base import Component, Method
+from orchestrator.upstream import DEMOS_FILE, MANIFEST_FILE, expert_weights
+from orchestrator.world import evaluation_sim_config
 from workers.demos import DemoSet
-from workers.learners.base import Weights
 from workers.policies import ExpertPolicy
-
-DEMOS_FILE = "demos/demos.npz"
-MANIFEST_FILE = "demos/manifest.json"
-
-
-def expert_weights(up: Upstream) -> Weights:
-    """The expert network of an upstream run, as the weights an `ExpertPolicy` loads."""
-    from orchestrator.algos.controlvae import ControlVAE
-    from orchestrator.algos.onpolicy import OnPolicy
-
-    cfg = up.config()
-    cls = method_class(cfg.algo._target_)
-    state = up.checkpoint()
-    version = int(state.get("loop", {}).get("iteration", 0))
-    if issubclass(cls, OnPolicy) and "ppo" in state:
-        payload = {
-            "kind": "ppo",
-            "config": cfg.algo.ppo,
-            "observation": cls.observation,
-            "residual": cls.residual,
-            "module": state["ppo"]["module"],
-        }
-    elif issubclass(cls, ControlVAE) and "vae" in state:
-        payload = {"kind": "vae", "config": cfg.algo.vae, "module": state["vae"]["learner"]["module"]}
-    else:
-        raise StageError(f"{up.describe()}: a {cfg.algo.name} run is not an expert (tracker, amp or controlvae)")
-    return Weights(version, payload)
 
 
 class Demos(Method):
     sections = ("demos",)
     needs = ("expert",)
-
-    def __init__(self, cfg, character, upstream=None):
-        super().__init__(cfg, character, upstream)
-        self.world = None
 
     def components(self) -> list[Component]:
         return []
@@ -78,18 +46,14 @@ class Demos(Method):
     @classmethod
     def sim_config(cls, cfg):
         """Falls detected (they end a rollout); no tracking-failure end and no cap (the rollout's length is set)."""
-        return replace(sim_config(cfg), threads=cfg.runtime.sim_threads)
+        return replace(evaluation_sim_config(cfg), threads=cfg.runtime.sim_threads)
 
-    def start(self, t) -> None:
-        t.publish(expert_weights(self.upstream["expert"]))
+    def start(self, trainer) -> None:
+        trainer.publish(expert_weights(self.upstream["expert"]))
 
     def jobs(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(clip, rollout index, control steps) of every rollout, clip by clip."""
-        from orchestrator.components import load_world
-
-        if self.world is None:
-            self.world = load_world(self.cfg)
-        library = self.world[1]
+        _, library = self.character_and_library()
         d = self.cfg.algo.demos
         wanted = max(1, int(round(d.seconds * self.cfg.character.control_hz)))
         steps = np.where(library.loop, wanted, np.minimum(wanted, library.num_frames - 1))
@@ -97,14 +61,14 @@ class Demos(Method):
         rollouts = np.tile(np.arange(d.rollouts_per_clip), library.num_clips)
         return clips, rollouts, steps[clips]
 
-    def step(self, t) -> tuple[int, dict[str, float]]:
-        rt = t.rt
+    def step(self, trainer) -> tuple[int, dict[str, float]]:
+        rt = trainer.runtime
         t0 = time.perf_counter()
         clips, rollouts, steps = self.jobs()
-        n = len(t.workers)
+        n = len(trainer.workers)
         pending = []
-        for w, worker in enumerate(t.workers):
-            rt.call(worker, "set_weights", t.weights_ref)
+        for w, worker in enumerate(trainer.workers):
+            rt.call(worker, "set_weights", trainer.weights_ref)
             pending.append(rt.call(worker, "demonstrate", clips[w::n], steps[w::n]))
         episodes: list[Any] = [None] * len(clips)
         for w, result in enumerate(rt.get(pending)):
@@ -116,15 +80,15 @@ class Demos(Method):
         demos.save(run_dir / DEMOS_FILE)
         manifest = self.manifest(demos)
         (run_dir / MANIFEST_FILE).write_text(json.dumps(manifest, indent=2))
-        t.tracker.log_artifact(str(run_dir / DEMOS_FILE), "demos")
-        t.tracker.log_artifact(str(run_dir / MANIFEST_FILE), "demos")
+        trainer.logger.log_artifact(str(run_dir / DEMOS_FILE), "demos")
+        trainer.logger.log_artifact(str(run_dir / MANIFEST_FILE), "demos")
         metrics = {f"demos/{k}": float(v) for k, v in manifest["counts"].items()}
         metrics.update({f"expert/{k}": float(v) for k, v in manifest["expert"].items()})
         metrics["throughput/demos_s"] = time.perf_counter() - t0
         return demos.num_transitions, metrics
 
     def manifest(self, demos: DemoSet) -> dict[str, Any]:
-        library = self.world[1]
+        _, library = self.character_and_library()
         hz = self.cfg.character.control_hz
         seconds = demos.episode_length / hz
         up = self.upstream["expert"]
@@ -162,22 +126,3 @@ class Demos(Method):
 
     def progress(self, metrics: dict[str, float]) -> dict[str, str]:
         return {"fell": f"{metrics.get('expert/fell_fraction', float('nan')):.2f}"}
-
-
-def load_manifest(up: Upstream) -> dict[str, Any]:
-    try:
-        return json.loads(up.artifact(MANIFEST_FILE).read_text())
-    except (json.JSONDecodeError, OSError) as e:
-        raise StageError(f"{up.describe()}: artifact {MANIFEST_FILE} is unreadable ({e})") from None
-
-
-def load_demos(up: Upstream) -> tuple[DemoSet, dict[str, Any]]:
-    """The dataset and manifest of an upstream demos stage; a StageError naming the artifact if unusable."""
-    from workers.demos import DemoError
-
-    manifest = load_manifest(up)
-    try:
-        demos = DemoSet.load(up.artifact(DEMOS_FILE))
-    except DemoError as e:
-        raise StageError(f"{up.describe()}: artifact {DEMOS_FILE}: {e}") from None
-    return demos, manifest

@@ -2,7 +2,7 @@
 
 DAgger-style (Alg. 1): the student (the VAE controller, z from the encoder E(z | s, s̃_{t+1})
 given the reference's next state as the goal) acts in the rollout workers; its trajectories
-go to the replay buffer; the learner (`components_distill.PulseActor`) has the teacher, the
+go to the replay buffer; the learner (`orchestrator.components.pulse.PulseActor`) has the teacher, the
 upstream `expert` stage, label the student's own states and takes Eq. 3's steps,
 ‖a_teacher − a‖² + λ·L_regu + β·KL(E ‖ R), with β annealed (`algo.vae.beta`). The student's
 new weights are published for the next collection.
@@ -24,25 +24,24 @@ from typing import Any
 import numpy as np
 import torch
 
-from orchestrator.algos import Component, Method, UpdateSchedule
-from orchestrator.algos.demos import expert_weights
-from orchestrator.components import ReplayActor, load_world, sim_config
-from orchestrator.components_distill import PulseActor
-from orchestrator.evaluate import evaluate_controller
+from orchestrator.algos.base import Component, ReplayFed, UpdateSchedule
+from orchestrator.components.pulse import PulseActor
+from orchestrator.components.replay import ReplayActor
+from orchestrator.evaluation.protocols import evaluate_controller
+from orchestrator.upstream import expert_weights
+from orchestrator.world import evaluation_sim_config
 from workers.distill import teacher_actions, tracking_success
 from workers.learners.vae import build_controller
 from workers.models import body_state
 from workers.policies import VAEPolicy, expert_module
 
 
-class Pulse(Method):
+class Pulse(ReplayFed):
     sections = ("vae", "pulse")
     needs = ("expert",)
 
     def __init__(self, cfg, character, upstream=None):
         super().__init__(cfg, character, upstream)
-        self.pending: list[Any] = []
-        self.world = None
         self.teacher = None
         self.schedule = UpdateSchedule.of(cfg, "vae")
 
@@ -58,29 +57,22 @@ class Pulse(Method):
     def make_policy(cls, cfg, character) -> VAEPolicy:
         return VAEPolicy(character.num_bodies, character.num_actions, cfg.algo.vae, cfg.algo.loop.prior_probability)
 
-    def publish(self, t) -> None:
-        t.publish(t.rt.get(t.rt.call(t.handles["vae"], "get_weights")))
+    def publish(self, trainer) -> None:
+        trainer.publish(trainer.runtime.get(trainer.runtime.call(trainer.handles["vae"], "get_weights")))
 
-    def start(self, t) -> None:
-        self.publish(t)
-        self.pending = t.collect(self.cfg.algo.loop.collect_steps, self.cfg.algo.loop.staleness)
-
-    def step(self, t) -> tuple[int, dict[str, float]]:
-        cfg, rt, h = self.cfg, t.rt, t.handles
+    def step(self, trainer) -> tuple[int, dict[str, float]]:
+        cfg, rt, h = self.cfg, trainer.runtime, trainer.handles
         loop, vae = cfg.algo.loop, cfg.algo.vae
         t0 = time.perf_counter()
-        infos = rt.get([rt.call(h["replay"], "add_trajectory", f) for f in self.pending])
-        t.took_collections("replay", infos)
-        collected = sum(i["transitions"] for i in infos)
-        self.pending = t.collect(loop.collect_steps, loop.staleness)
+        infos, collected = self.exchange(trainer, "replay")
         metrics: dict[str, float] = {}
         if infos[-1]["size"] >= loop.warmup:
             n = self.schedule.due(collected)
             batches = rt.call(h["replay"], "sample_batches", n, vae.batch_size, vae.rollout_steps)
             m = rt.get(rt.call(h["vae"], "train", batches))
-            t.check_alive("vae", m.pop("incarnation"))
+            trainer.check_alive("vae", m.pop("incarnation"))
             metrics.update({f"vae/{k}": float(v) for k, v in m.items()})
-        self.publish(t)
+        self.publish(trainer)
         ends = sum(i["episode_ends"] for i in infos)
         metrics.update(
             {
@@ -92,14 +84,9 @@ class Pulse(Method):
         )
         return collected, metrics
 
-    def finish(self, t) -> None:
-        t.rt.get(self.pending)
-
-    def evaluate(self, t, final: bool) -> dict[str, float]:
-        if self.world is None:
-            self.world = load_world(self.cfg)
-        character, library = self.world
-        weights = t.rt.get(t.rt.call(t.handles["vae"], "get_weights"))
+    def evaluate(self, trainer, final: bool) -> dict[str, float]:
+        character, library = self.character_and_library()
+        weights = trainer.runtime.get(trainer.runtime.call(trainer.handles["vae"], "get_weights"))
         controller = build_controller(character.num_bodies, character.num_actions, self.cfg.algo.vae)
         controller.load_state_dict(weights.state)
         controller.eval().requires_grad_(False)
@@ -115,7 +102,9 @@ class Pulse(Method):
             return a
 
         with torch.no_grad():
-            track = tracking_success(student, character, library, sim_config=sim_config(self.cfg), seed=self.cfg.seed)
+            track = tracking_success(
+                student, character, library, sim_config=evaluation_sim_config(self.cfg), seed=self.cfg.seed
+            )
         states, clips, frames, actions = (np.concatenate(x) for x in zip(*visited, strict=True))
         teacher = self.teacher.state
         module = expert_module(teacher, character.num_bodies, character.num_actions)
@@ -127,8 +116,9 @@ class Pulse(Method):
             "eval/mpjpe_local_mm": float(track["mpjpe_local_mm"]),
             "eval/action_error": float(((actions - labels) ** 2).sum(-1).mean()),
         }
-        t.tracker.log_dict(track, f"eval/{'final' if final else f'iter-{t.state.iteration:07d}'}-success.json")
-        metrics.update(evaluate_controller(self.cfg, character, library, weights, t.tracker, t.state.iteration, final))
+        iteration = trainer.state.iteration
+        trainer.logger.log_dict(track, f"eval/{'final' if final else f'iter-{iteration:07d}'}-success.json")
+        metrics.update(evaluate_controller(self.cfg, character, library, weights, trainer.logger, iteration, final))
         return metrics
 
     def progress(self, metrics: dict[str, float]) -> dict[str, str]:

@@ -11,10 +11,18 @@ Trainer `model` (ControlVAE §4.2): rollout workers run the task policy in the
 simulator (`workers.task_policy`), their states and goal sequences go to the task
 learner (`learner-task`) directly, which keeps the newest `buffer_size` of them
 (B_g) and takes the updates its replay ratio makes due: N rollouts of T steps
-through the frozen world model, Eq. 22's losses. Trainer `ppo` is
-`orchestrator.algos.task_ppo` (PPO in the simulator, reward e^(−L_g)).
+through the frozen world model, Eq. 22's losses.
 
-Evaluation (`workers.task_eval`): the normalised return and success rate over a
+Trainer `ppo` (`TaskPPO`, below): the comparison ControlVAE draws against its model-based
+learner, and how PhysicsVAE and PULSE train their task policies: PPO (the same learner,
+`learner-ppo`, and loop as AMP and the tracking expert: `orchestrator.algos.onpolicy`) on the
+reward e^(−L_g) of the state each step reaches, episodes ending early on a fall. The
+actor-critic sees the state and the goal; its action is the latent offset on the frozen prior's
+mean and, with σ > 0, the helper branch's pre-activation (`workers.task_policy.TaskPPOPolicy`);
+its exploration is the fixed std `algo.ppo.action_std` (PULSE: 0.22 in latent units).
+`algo=task` builds a `Task`, which is a `TaskPPO` when `algo.task.trainer=ppo`.
+
+Evaluation (`orchestrator.evaluation.tasks`), the same for both trainers: the normalised return and success rate over a
 fixed set of goals, the style score (the applied action's deviation from the
 decoder's own, degrees) and the time until fall under the task policy. At the start
 the skill stage's own evaluation is copied into this run as `skill/...`, so a
@@ -26,30 +34,23 @@ from __future__ import annotations
 import time
 from typing import Any
 
-from orchestrator.algos import Component, Method, UpdateSchedule
-from orchestrator.components import load_world
-from orchestrator.components_task import TaskActor, skill_model
-from orchestrator.evaluate_task import evaluate_task
-from workers.task_policy import TaskRolloutPolicy
+from orchestrator.algos.base import Component, ReplayFed, UpdateSchedule
+from orchestrator.algos.onpolicy import OnPolicy
+from orchestrator.components.ppo import PPOActor
+from orchestrator.components.task import TaskActor, skill_model
+from orchestrator.evaluation.tasks import evaluate_task
+from workers.losses.task import goal_observation_dim
+from workers.sim.features import StateLayout
+from workers.task_policy import TaskPPOPolicy, TaskRolloutPolicy
 
 
-class Task(Method):
-    sections = ("task", "ppo")
-    needs = ("skill",)
+class SkillTask:
+    """What both task trainers share: the frozen skill model, its evaluation copied in, the task evaluation."""
 
-    def __new__(cls, cfg, character, upstream=None):
-        if cfg.algo.task.trainer == "ppo":  # the other trainer is its own class (PPO's loop)
-            from orchestrator.algos.task_ppo import TaskPPO
-
-            return TaskPPO(cfg, character, upstream)
-        return super().__new__(cls)
-
-    def __init__(self, cfg, character, upstream=None):
-        super().__init__(cfg, character, upstream)
-        self.pending: list[Any] = []
-        self.world = None
-        self.skill: dict[str, Any] | None = None
-        self.schedule = UpdateSchedule.of(cfg, "task")
+    cfg: Any
+    upstream: dict[str, Any]
+    skill: dict[str, Any] | None = None
+    learner_key = ""  # the component whose weights are the task policy's
 
     def skill_payload(self) -> dict[str, Any]:
         """The frozen decoder and prior the workers and the evaluation run (downloaded once)."""
@@ -57,6 +58,37 @@ class Task(Method):
             model_based = self.cfg.algo.task.trainer == "model"
             self.skill = skill_model(self.upstream["skill"], world_model=model_based)
         return self.skill
+
+    def configure_skill(self, trainer) -> None:
+        """The workers get the frozen skill model; the skill stage's own evaluation is copied into this run."""
+        skill = self.skill_payload()
+        trainer.configure_workers(skill={k: skill[k] for k in ("config", "module", "prior_action")})
+        copy_skill_metrics(trainer, self.upstream["skill"])
+
+    def evaluate(self, trainer, final: bool) -> dict[str, float]:
+        """The task policy (its learner's newest weights) on the skill model, by `evaluation.tasks`."""
+        rt = trainer.runtime
+        weights = rt.get(rt.call(trainer.handles[self.learner_key], "get_weights"))
+        character, library = self.character_and_library()
+        policy = self.make_policy(self.cfg, character)
+        policy.configure({"skill": self.skill_payload()})
+        policy.set_weights(weights)
+        return evaluate_task(self.cfg, character, library, policy, trainer.logger, trainer.state.iteration, final)
+
+
+class Task(SkillTask, ReplayFed):
+    sections = ("task", "ppo")
+    needs = ("skill",)
+    learner_key = "task"
+
+    def __new__(cls, cfg, character, upstream=None):
+        if cls is Task and cfg.algo.task.trainer == "ppo":  # the other trainer is PPO's loop
+            return TaskPPO(cfg, character, upstream)
+        return super().__new__(cls)
+
+    def __init__(self, cfg, character, upstream=None):
+        super().__init__(cfg, character, upstream)
+        self.schedule = UpdateSchedule.of(cfg, "task")
 
     def components(self) -> list[Component]:
         self.skill_payload()  # a skill stage that is not one fails here, before any actor starts
@@ -66,36 +98,28 @@ class Task(Method):
     @classmethod
     def make_policy(cls, cfg, character) -> TaskRolloutPolicy:
         if cfg.algo.task.trainer == "ppo":
-            from orchestrator.algos.task_ppo import TaskPPO
-
             return TaskPPO.make_policy(cfg, character)
         return TaskRolloutPolicy(character.num_bodies, character.num_actions, cfg.algo.task, cfg.character.control_hz)
 
     # The iteration -----------------------------------------------------------------
-    def publish(self, t) -> None:
-        t.publish(t.rt.get(t.rt.call(t.handles["task"], "get_weights")))
+    def publish(self, trainer) -> None:
+        trainer.publish(trainer.runtime.get(trainer.runtime.call(trainer.handles["task"], "get_weights")))
 
-    def start(self, t) -> None:
-        skill = self.skill_payload()
-        t.configure_workers(skill={k: skill[k] for k in ("config", "module", "prior_action")})
-        copy_skill_metrics(t, self.upstream["skill"])
-        self.publish(t)
-        self.pending = t.collect(self.cfg.algo.loop.collect_steps, self.cfg.algo.loop.staleness)
+    def start(self, trainer) -> None:
+        self.configure_skill(trainer)
+        super().start(trainer)
 
-    def step(self, t) -> tuple[int, dict[str, float]]:
-        cfg, rt, h = self.cfg, t.rt, t.handles
+    def step(self, trainer) -> tuple[int, dict[str, float]]:
+        cfg, rt, h = self.cfg, trainer.runtime, trainer.handles
         loop = cfg.algo.loop
         t0 = time.perf_counter()
-        infos = rt.get([rt.call(h["task"], "add_trajectory", f) for f in self.pending])
-        t.took_collections("task", infos)
-        collected = sum(i["transitions"] for i in infos)
-        self.pending = t.collect(loop.collect_steps, loop.staleness)
+        infos, collected = self.exchange(trainer, "task")
         metrics: dict[str, float] = {}
         if infos[-1]["size"] >= loop.warmup:
             m = rt.get(rt.call(h["task"], "train", self.schedule.due(collected)))
-            t.check_alive("task", m.pop("incarnation"))
+            trainer.check_alive("task", m.pop("incarnation"))
             metrics.update({f"task/{k}": float(v) for k, v in m.items()})
-        self.publish(t)
+        self.publish(trainer)
         ends = sum(i["episode_ends"] for i in infos)
         metrics.update(
             {
@@ -111,18 +135,6 @@ class Task(Method):
             metrics[f"rollout/{term}"] = sum(i["terms"][term] for i in infos) / max(collected, 1)
         return collected, metrics
 
-    def finish(self, t) -> None:
-        t.rt.get(self.pending)
-
-    def evaluate(self, t, final: bool) -> dict[str, float]:
-        weights = t.rt.get(t.rt.call(t.handles["task"], "get_weights"))
-        if self.world is None:
-            self.world = load_world(self.cfg)
-        policy = self.make_policy(self.cfg, self.world[0])
-        policy.configure({"skill": self.skill_payload()})
-        policy.set_weights(weights)
-        return evaluate_task(self.cfg, *self.world, policy, t.tracker, t.state.iteration, final)
-
     def progress(self, metrics: dict[str, float]) -> dict[str, str]:
         return {"reward": f"{metrics.get('rollout/task_reward', float('nan')):.3g}"}
 
@@ -133,8 +145,40 @@ class Task(Method):
         self.schedule.load_state_dict(state, "task")
 
 
-def copy_skill_metrics(t, up) -> None:
+class TaskPPO(SkillTask, OnPolicy):
+    """A task policy trained by PPO in the simulator (`algo.task.trainer=ppo`), on the reward e^(−L_g)."""
+
+    sections = Task.sections
+    needs = Task.needs
+    expert = None
+    learner_key = "ppo"
+
+    def components(self) -> list[Component]:
+        skill = self.skill_payload()
+        task = self.cfg.algo.task
+        obs_dim = StateLayout(self.character.num_bodies).dim + goal_observation_dim(task.task)
+        act_dim = skill["config"].latent_dim + (self.character.num_actions if task.sigma > 0 else 0)
+        return [Component("ppo", PPOActor, (self.cfg, obs_dim, act_dim), actor="learner-ppo")]
+
+    @classmethod
+    def make_policy(cls, cfg, character) -> TaskPPOPolicy:
+        return TaskPPOPolicy(
+            character.num_bodies, character.num_actions, cfg.algo.task, cfg.character.control_hz, cfg.algo.ppo
+        )
+
+    def start(self, trainer) -> None:
+        self.configure_skill(trainer)
+        super().start(trainer)
+
+    def step(self, trainer) -> tuple[int, dict[str, float]]:
+        collected, metrics = super().step(trainer)
+        if "ppo/reward_mean" in metrics:
+            metrics["rollout/task_reward"] = metrics["ppo/reward_mean"]
+        return collected, metrics
+
+
+def copy_skill_metrics(trainer, up) -> None:
     """The skill stage's own final evaluation, as skill/... metrics of this run (once, at its start)."""
     copied = {f"skill/{k.removeprefix('eval/')}": v for k, v in up.metrics().items() if k.startswith("eval/")}
-    if copied and t.state.iteration == 0:
-        t.tracker.log_metrics(copied, step=0)
+    if copied and trainer.state.iteration == 0:
+        trainer.logger.log_metrics(copied, step=0)

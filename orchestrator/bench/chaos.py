@@ -219,8 +219,7 @@ def run(
     from mlflow.tracking import MlflowClient
 
     from orchestrator import build, checkpoint
-    from orchestrator.schema import validate
-    from orchestrator.stages import compose
+    from orchestrator.compose import compose, validate
     from orchestrator.tracking.server import start_local_server
 
     outage = default_outage(minutes) if outage is None else outage
@@ -262,7 +261,7 @@ def run(
         if not server.running():  # the run ended within the outage
             server = start_local_server(backend, artifacts, port=server.port, log_path=server.log_path)
         client = MlflowClient(server.uri)
-        run_id = json.loads((train_dir / build.RUN_FILE).read_text())["run_id"]
+        run_id = json.loads((train_dir / checkpoint.RUN_FILE).read_text())["run_id"]
         status = client.get_run(run_id).info.status if run_id else "not created"
         steps = [m.step for m in client.get_metric_history(run_id, ITERATION_METRIC)] if run_id else []
     finally:

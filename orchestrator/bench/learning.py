@@ -29,12 +29,9 @@ from typing import Any
 import numpy as np
 from matplotlib.figure import Figure
 
-from orchestrator.build import build_runtime
-from orchestrator.components import load_world, sim_config
-from orchestrator.loop import Trainer
-from orchestrator.schema import validate
-from orchestrator.stages import compose
-from orchestrator.tracking.base import NoOpTracker
+from orchestrator.build import untracked_trainer
+from orchestrator.compose import compose, validate
+from orchestrator.world import evaluation_sim_config, load_library
 from workers.evaluation import time_until_fall, tracking_error
 from workers.learners.vae import build_controller
 
@@ -46,9 +43,11 @@ LEVELS = (("tracking_error", 0.15, -1), ("tracking_error", 0.10, -1), ("time_unt
 def evaluate(cfg, character, library, weights, fall_rollouts: int) -> dict[str, float]:
     controller = build_controller(character.num_bodies, character.num_actions, cfg.algo.vae)
     controller.load_state_dict(weights.state)
-    track = tracking_error(controller, library, character, cfg.eval.tracking_seconds, sim_config(cfg), cfg.seed)
+    track = tracking_error(
+        controller, library, character, cfg.eval.tracking_seconds, evaluation_sim_config(cfg), cfg.seed
+    )
     fall = time_until_fall(
-        controller, character, library, fall_rollouts, cfg.eval.fall_max_seconds, sim_config=sim_config(cfg),
+        controller, character, library, fall_rollouts, cfg.eval.fall_max_seconds, sim_config=evaluation_sim_config(cfg),
         seed=cfg.seed,
     )  # fmt: skip
     return {"tracking_error": track["mean"], "time_until_fall": fall["mean"]}
@@ -82,11 +81,11 @@ def run(
         cfg = validate(
             compose([*overrides, f"run_dir={tmp}", "tracking=off", "progress=false", "algo.loop.iterations=100000000"])
         )
-        character, library = load_world(cfg)
-        rt = build_runtime(cfg)
+        rt, trainer = untracked_trainer(cfg)
+        character = trainer.character
+        library = load_library(cfg, character)
         curve: list[dict[str, float]] = []
         try:
-            trainer = Trainer(cfg, rt, NoOpTracker(), character)
             trainer.method.start(trainer)
             trained = 0.0
             next_eval = 0.0

@@ -35,13 +35,8 @@ import os
 import platform
 import statistics
 import time
-from pathlib import Path
 from tempfile import TemporaryDirectory
 from typing import Any
-
-from hydra import compose, initialize_config_dir
-
-CONF = Path(__file__).resolve().parents[2] / "conf"
 
 
 def _our_trainer(
@@ -56,13 +51,9 @@ def _our_trainer(
     overlap: bool = False,
     sim_threads: int = 1,
 ):
-    from orchestrator.build import build_runtime
-    from orchestrator.components import load_world
-    from orchestrator.loop import Trainer
-    from orchestrator.schema import register, validate
-    from orchestrator.tracking.base import NoOpTracker
+    from orchestrator.build import untracked_trainer
+    from orchestrator.compose import compose, validate
 
-    register()
     sizes = "[" + ",".join(str(h) for h in hidden) + "]"
     overrides = [
         "algo=tracker",
@@ -84,11 +75,8 @@ def _our_trainer(
         f"seed={seed}",
         f"run_dir={tmp}",
     ]
-    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
-        cfg = validate(compose("config", overrides=overrides))
-    character, _ = load_world(cfg)
-    rt = build_runtime(cfg)
-    trainer = Trainer(cfg, rt, NoOpTracker(), character)
+    cfg = validate(compose(overrides))
+    rt, trainer = untracked_trainer(cfg)
     trainer.method.start(trainer)
     return cfg, rt, trainer
 

@@ -13,19 +13,11 @@ from __future__ import annotations
 import os
 import platform
 import time
-from pathlib import Path
 from tempfile import TemporaryDirectory
 from typing import Any
 
-from hydra import compose, initialize_config_dir
-
-from orchestrator.build import build_runtime
-from orchestrator.components import load_world
-from orchestrator.loop import Trainer
-from orchestrator.schema import register, validate
-from orchestrator.tracking.base import NoOpTracker
-
-CONF = Path(__file__).resolve().parents[2] / "conf"
+from orchestrator.build import untracked_trainer
+from orchestrator.compose import compose, validate
 
 
 def _updates(metrics: dict[str, float]) -> float:
@@ -36,8 +28,7 @@ def _updates(metrics: dict[str, float]) -> float:
 def measure(
     algo: str, scale: str, runtime: str, workers: int, iterations: int, warmup: int, envs: int, seed: int
 ) -> dict[str, Any]:
-    register()
-    with TemporaryDirectory() as tmp, initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+    with TemporaryDirectory() as tmp:
         overrides = [
             f"algo={algo}",
             f"scale={scale}",
@@ -51,11 +42,9 @@ def measure(
             f"seed={seed}",
             "algo.loop.warmup=0",
         ]
-        cfg = validate(compose("config", overrides=overrides))
-        character, _ = load_world(cfg)
-        rt = build_runtime(cfg)
+        cfg = validate(compose(overrides))
+        rt, trainer = untracked_trainer(cfg)
         try:
-            trainer = Trainer(cfg, rt, NoOpTracker(), character)
             trainer.method.start(trainer)
             metrics: dict[str, float] = {}
             for _ in range(warmup):

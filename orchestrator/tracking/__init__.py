@@ -1,4 +1,4 @@
-"""Tracking: the `Tracker` interface and its no-op twin (`base`), the MLflow tracker (`mlflow`) with
+"""Tracking: the `RunLogger` interface and its no-op twin (`base`), the MLflow logger (`mlflow`) with
 its disk spool drained in the background (`spool`), a local MLflow server for parallel jobs
 (`server`), the URI check (`uri`), system metrics (`system`) and the trained policy as an MLflow
 model (`model`).
@@ -8,6 +8,6 @@ This is the only package that imports mlflow, and importing `orchestrator.tracki
 subprocess).
 """
 
-from orchestrator.tracking.base import NoOpTracker, Tracker, flatten
+from orchestrator.tracking.base import NoOpLogger, RunLogger, flatten
 
-__all__ = ["NoOpTracker", "Tracker", "flatten"]
+__all__ = ["NoOpLogger", "RunLogger", "flatten"]

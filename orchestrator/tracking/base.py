@@ -1,6 +1,6 @@
 """The tracker interface the training code writes through, its no-op twin, and config flattening.
 
-Learners and the loop return plain dicts; only a `Tracker` writes them anywhere (STYLE.md item 6).
+Learners and the loop return plain dicts; only a `RunLogger` writes them anywhere (STYLE.md item 6).
 This module imports no tracking backend, so code that only needs the interface stays light.
 """
 
@@ -18,7 +18,7 @@ MAX_PARAM_VALUE_LENGTH = 6000
 TRUNCATION_MARK = "...[truncated]"
 
 
-class Tracker(abc.ABC):
+class RunLogger(abc.ABC):
     """Where params, metrics, tags and artifacts of one run go.
 
     Metric keys are namespaced by the caller (`rollout/…`, `vae/…`); `step` is the number of
@@ -66,14 +66,14 @@ class Tracker(abc.ABC):
     def close(self, status: str = "FINISHED") -> None:
         """Flush and end the run with a terminal status (FINISHED, FAILED or KILLED)."""
 
-    def __enter__(self) -> Tracker:
+    def __enter__(self) -> RunLogger:
         return self
 
     def __exit__(self, exc_type, exc, tb) -> None:
         self.close("FAILED" if exc_type is not None else "FINISHED")
 
 
-class NoOpTracker(Tracker):
+class NoOpLogger(RunLogger):
     """A tracker that accepts every call and records nothing (`tracking=off`, tests)."""
 
     @property
@@ -164,8 +164,3 @@ def store_artifacts(uri: str) -> str | None:
     if not uri.startswith("sqlite:///"):
         return None
     return (Path(uri.removeprefix("sqlite:///")).parent / "mlartifacts").resolve().as_uri()
-
-
-def embedded_uri(run_dir: str | Path) -> str:
-    """The tracking URI of the embedded store of a run directory."""
-    return f"sqlite:///{Path(run_dir).resolve() / 'mlflow.db'}"

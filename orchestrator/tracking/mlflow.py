@@ -38,11 +38,10 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from orchestrator.tracking.base import (  # stores' URIs live in base, re-exported here
+from orchestrator.tracking.base import (
     EXPERIMENT_TAGS,
-    Tracker,
+    RunLogger,
     dump_text,
-    embedded_uri,
     store_artifacts,
     truncate,
 )
@@ -55,8 +54,9 @@ from orchestrator.tracking.spool import (  # sets MLflow's client defaults befor
     Spool,
     refused,
 )
+from orchestrator.tracking.uri import embedded_uri
 
-__all__ = ["EXPERIMENT_TAGS", "MlflowTracker", "Sender", "Spool", "embedded_uri", "replay_spool", "store_artifacts"]
+__all__ = ["EXPERIMENT_TAGS", "MlflowLogger", "Sender", "Spool", "replay_spool", "store_artifacts"]
 
 log = logging.getLogger(__name__)
 
@@ -69,8 +69,8 @@ def _now_ms() -> int:
     return int(time.time() * 1000)
 
 
-class MlflowTracker(Tracker):
-    """A `Tracker` writing to MLflow through `MlflowClient`, spooling to disk while the backend is away.
+class MlflowLogger(RunLogger):
+    """A `RunLogger` writing to MLflow through `MlflowClient`, spooling to disk while the backend is away.
 
     Args:
         uri: tracking URI used as is (`http://127.0.0.1:5000`, `sqlite:///…`); None: the embedded
@@ -126,7 +126,7 @@ class MlflowTracker(Tracker):
         create = {"experiment": experiment, "artifact_location": artifacts, "run_name": run_name, "tags": tags}
         self._sender.submit({"op": "create", "run": self._key, "start_time": _now_ms(), **create})
 
-    # ---------------------------------------------------------------- the Tracker interface
+    # ---------------------------------------------------------------- the RunLogger interface
 
     @property
     def run_id(self) -> str | None:

@@ -18,7 +18,7 @@ import numpy as np
 import torch
 
 from orchestrator.schema import Config
-from orchestrator.tracking.base import Tracker
+from orchestrator.tracking.base import RunLogger
 from workers.learners.base import Weights
 from workers.models import body_state
 from workers.sim.env import BatchedSim
@@ -43,14 +43,14 @@ def deployable(
     return module.eval(), np.asarray(example, np.float32)
 
 
-def log_policy(tracker: Tracker, module: torch.nn.Module, example: np.ndarray, run_dir: Path) -> str | None:
+def log_policy(logger: RunLogger, module: torch.nn.Module, example: np.ndarray, run_dir: Path) -> str | None:
     """Log `module` as the run's MLflow model; its uri, or None when it was saved to `run_dir/model` instead."""
     import mlflow
     import mlflow.pytorch
     from mlflow.models import infer_signature
 
-    uri = getattr(tracker, "uri", None)
-    if uri is None or tracker.run_id is None:
+    uri = getattr(logger, "uri", None)
+    if uri is None or logger.run_id is None:
         return None
     with torch.no_grad():
         output = module(torch.from_numpy(example)).numpy()
@@ -66,7 +66,7 @@ def log_policy(tracker: Tracker, module: torch.nn.Module, example: np.ndarray, r
     try:
         quiet.setLevel(logging.ERROR)
         mlflow.set_tracking_uri(uri)
-        info = mlflow.pytorch.log_model(module, name=MODEL_NAME, run_id=tracker.run_id, **kwargs)
+        info = mlflow.pytorch.log_model(module, name=MODEL_NAME, run_id=logger.run_id, **kwargs)
     except Exception as e:  # noqa: BLE001 - any store failure: keep the model on disk, the run goes on
         where = run_dir / "model"
         shutil.rmtree(where, ignore_errors=True)
@@ -75,5 +75,5 @@ def log_policy(tracker: Tracker, module: torch.nn.Module, example: np.ndarray, r
         return None
     finally:
         quiet.setLevel(level)
-    tracker.set_tags({"model_uri": info.model_uri})
+    logger.set_tags({"model_uri": info.model_uri})
     return info.model_uri

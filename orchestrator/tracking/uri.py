@@ -1,9 +1,14 @@
-"""Which tracking URIs MLflow can use, told without importing mlflow (the config schema asks at composition)."""
+"""Tracking URIs, told without importing mlflow: the store a run writes to, and which URIs MLflow can use.
+
+`store_uri` is the one place that says where a run (or a sweep) without `tracking.uri` keeps its records:
+the embedded SQLite store `mlflow.db` in its directory. `tracking_uri_error` is asked at composition.
+"""
 
 from __future__ import annotations
 
 import os
 from importlib.metadata import entry_points
+from pathlib import Path
 from urllib.parse import urlparse
 
 # The schemes of MLflow's own tracking stores (a bare path is a file store); plug-ins add theirs under
@@ -31,3 +36,13 @@ def tracking_uri_error(uri: str) -> str | None:
         return None
     known = ", ".join(f"{s}:" for s in (*TRACKING_SCHEMES, *sorted(plugins)))
     return f"MLflow has no tracking store for the scheme {scheme!r} of {uri!r} (a path, or one of {known})"
+
+
+def embedded_uri(directory: str | Path) -> str:
+    """The tracking URI of the embedded store of a run (or sweep) directory: `<directory>/mlflow.db`."""
+    return f"sqlite:///{Path(directory).resolve() / 'mlflow.db'}"
+
+
+def store_uri(uri: str | None, directory: str | Path) -> str:
+    """The store a run or sweep writes to: `tracking.uri` as given, else the embedded one in `directory`."""
+    return uri or embedded_uri(directory)

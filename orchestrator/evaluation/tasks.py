@@ -9,10 +9,10 @@ from typing import Any
 
 from matplotlib.figure import Figure
 
-from orchestrator.components import sim_config
-from orchestrator.evaluate import Progress, _jsonable
+from orchestrator.evaluation.protocols import Progress, jsonable
 from orchestrator.schema import Config
-from orchestrator.tracking.base import Tracker
+from orchestrator.tracking.base import RunLogger
+from orchestrator.world import evaluation_sim_config
 from workers.motion.library import MotionLibrary
 from workers.sim.character import Character
 from workers.task_eval import evaluate_task_policy
@@ -24,7 +24,7 @@ def evaluate_task(
     character: Character,
     library: MotionLibrary,
     policy: TaskRolloutPolicy,
-    tracker: Tracker,
+    logger: RunLogger,
     iteration: int,
     final: bool,
 ) -> dict[str, float]:
@@ -37,7 +37,7 @@ def evaluate_task(
             library,
             cfg.eval.task_goals,
             cfg.eval.task_seconds,
-            sim_config=sim_config(cfg),
+            sim_config=evaluation_sim_config(cfg),
             seed=cfg.eval.task_goal_seed,
         )
     metrics = {
@@ -50,15 +50,13 @@ def evaluate_task(
     metrics.update({f"eval/task_{k}": float(v) for k, v in result["terms"].items()})
     name = "final" if final else f"iter-{iteration:07d}"
     report = {k: v for k, v in result.items() if k not in ("roots", "goals")}
-    tracker.log_dict(
-        _jsonable({"iteration": iteration, "policy_version": policy.version, **report}), f"eval/{name}.json"
-    )
+    logger.log_dict(jsonable({"iteration": iteration, "policy_version": policy.version, **report}), f"eval/{name}.json")
     task = cfg.algo.task
     title = f"{task.task} on {cfg.terrain.kind} ground, σ = {task.sigma:g}, policy version {policy.version}"
     with tempfile.TemporaryDirectory() as tmp:
         png = Path(tmp) / f"task-{name}.png"
         plot_task_eval(result, task.task, png, title)
-        tracker.log_artifact(str(png), "eval")
+        logger.log_artifact(str(png), "eval")
     return metrics
 
 

@@ -7,7 +7,7 @@ cloning + α·simulation consistency through the frozen layer + β·KL to N(0, I
 (600 epochs). Both need the `demos` stage; PhysicsVAE also the `world_model` stage, so
 that every point of an α sweep shares one expert, one dataset and one layer.
 
-One iteration is one epoch (`components_offline`). Both report the expert's quality
+One iteration is one epoch (`orchestrator.components.physicsvae`). Both report the expert's quality
 from the demos' manifest (`expert/...`) in their run. Evaluation: the layer's held-out
 prediction error; the VAE's held-out errors and time-until-fall by PhysicsVAE's protocol
 (z ~ N(0, I) every control step, `eval.fall_rollouts` rollouts from one fixed start,
@@ -16,11 +16,10 @@ capped at `eval.fall_max_seconds`), with the tracking error of the posterior.
 
 from __future__ import annotations
 
-from orchestrator.algos import Component, Method
-from orchestrator.algos.demos import load_manifest
-from orchestrator.components import load_world
-from orchestrator.components_offline import OfflineWorldModelActor, PhysicsVAEActor
-from orchestrator.evaluate import evaluate_controller
+from orchestrator.algos.base import Component, Method
+from orchestrator.components.physicsvae import OfflineWorldModelActor, PhysicsVAEActor
+from orchestrator.evaluation.protocols import evaluate_controller
+from orchestrator.upstream import load_manifest
 from workers.policies import VAEPolicy
 
 
@@ -35,9 +34,9 @@ class Offline(Method):
         # The learner actor downloads the demos itself; here only the manifest, checked up front.
         self.manifest = load_manifest(self.upstream["demos"]) if "demos" in self.upstream else {}
 
-    def start(self, t) -> None:
-        if t.state.iteration == 0:
-            t.tracker.log_metrics(self.expert_metrics(), step=0)
+    def start(self, trainer) -> None:
+        if trainer.state.iteration == 0:
+            trainer.logger.log_metrics(self.expert_metrics(), step=0)
 
     def expert_metrics(self) -> dict[str, float]:
         """The expert's quality, as recorded in the demos' manifest: it bounds what is learnt from them."""
@@ -45,17 +44,18 @@ class Offline(Method):
         out.update({f"demos/{k}": float(v) for k, v in self.manifest.get("counts", {}).items()})
         return out
 
-    def step(self, t) -> tuple[int, dict[str, float]]:
-        rt, key = t.rt, self.learner_key
-        m = rt.get(rt.call(t.handles[key], "train_epoch"))
-        t.check_alive(key, m.pop("incarnation"))
+    def step(self, trainer) -> tuple[int, dict[str, float]]:
+        rt, key = trainer.runtime, self.learner_key
+        m = rt.get(rt.call(trainer.handles[key], "train_epoch"))
+        trainer.check_alive(key, m.pop("incarnation"))
         return int(m["updates"] * self.batch_size()), {f"{key}/{k}": float(v) for k, v in m.items()}
 
     def batch_size(self) -> int:
         raise NotImplementedError
 
-    def heldout(self, t) -> dict[str, float]:
-        m = t.rt.get(t.rt.call(t.handles[self.learner_key], "validate"))
+    def heldout(self, trainer) -> dict[str, float]:
+        rt = trainer.runtime
+        m = rt.get(rt.call(trainer.handles[self.learner_key], "validate"))
         return {f"eval/{k}": float(v) for k, v in m.items()}
 
     def progress(self, metrics: dict[str, float]) -> dict[str, str]:
@@ -75,18 +75,14 @@ class OfflineWorldModel(Offline):
     def batch_size(self) -> int:
         return self.cfg.algo.world_model.batch_size
 
-    def evaluate(self, t, final: bool) -> dict[str, float]:
-        return self.heldout(t)
+    def evaluate(self, trainer, final: bool) -> dict[str, float]:
+        return self.heldout(trainer)
 
 
 class PhysicsVAE(Offline):
     sections = ("world_model", "vae", "offline")
     needs = ("demos", "world_model")
     learner_key = "vae"
-
-    def __init__(self, cfg, character, upstream=None):
-        super().__init__(cfg, character, upstream)
-        self.world = None
 
     def components(self) -> list[Component]:
         b, a = self.character.num_bodies, self.character.num_actions
@@ -101,13 +97,15 @@ class PhysicsVAE(Offline):
         """Not run by workers (the method is offline): the form its controller is exported in."""
         return VAEPolicy(character.num_bodies, character.num_actions, cfg.algo.vae)
 
-    def policy_weights(self, t):
-        return t.rt.get(t.rt.call(t.handles["vae"], "get_weights"))
+    def policy_weights(self, trainer):
+        return trainer.runtime.get(trainer.runtime.call(trainer.handles["vae"], "get_weights"))
 
-    def evaluate(self, t, final: bool) -> dict[str, float]:
-        if self.world is None:
-            self.world = load_world(self.cfg)
-        weights = t.rt.get(t.rt.call(t.handles["vae"], "get_weights"))
-        metrics = self.heldout(t)
-        metrics.update(evaluate_controller(self.cfg, *self.world, weights, t.tracker, t.state.iteration, final))
+    def evaluate(self, trainer, final: bool) -> dict[str, float]:
+        weights = self.policy_weights(trainer)
+        metrics = self.heldout(trainer)
+        metrics.update(
+            evaluate_controller(
+                self.cfg, *self.character_and_library(), weights, trainer.logger, trainer.state.iteration, final
+            )
+        )
         return metrics

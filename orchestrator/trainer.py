@@ -5,10 +5,12 @@ The `Trainer` builds the method's components and its rollout workers through a
 iteration budget: the method's `step` (sample → replay → update → publish
 weights), metrics, the progress bar, evaluation and checkpoint cadence,
 recovery of a component that Ray restarted, and resume. Methods
-(`orchestrator.algos`) call back into it for the machinery they share:
-`publish` (weights into the object store once per version), `collect` (workers
-refreshed when their weights are too stale, then one coarse collect call each),
-`check_alive` and `worker_restarts`.
+(`orchestrator.algos`) call back into it for the machinery they share, through
+what `orchestrator.algos.base.TrainerAPI` lists: `publish` (weights into the
+object store once per version), `collect` (workers refreshed when their weights
+are too stale, then one coarse collect call each), `check_alive`,
+`took_collections` and `worker_restarts`. At the end the trained policy is
+exported as the run's MLflow model (`orchestrator.tracking.model`).
 """
 
 from __future__ import annotations
@@ -19,16 +21,19 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+import torch
 from tqdm import tqdm
 
 from orchestrator import checkpoint
-from orchestrator.algos import Method, method_class
-from orchestrator.components import RolloutActor
+from orchestrator.algos.base import Method, method_class
+from orchestrator.components.rollout import RolloutActor
 from orchestrator.runtime.base import Resources, Runtime
 from orchestrator.schema import Config
-from orchestrator.stages import Upstream
-from orchestrator.tracking.base import Tracker
+from orchestrator.tracking.base import RunLogger
+from orchestrator.tracking.model import deployable, log_policy
 from orchestrator.tracking.system import SystemMetrics
+from orchestrator.upstream import Upstream
 from workers.learners.base import Weights
 from workers.sim.character import Character
 
@@ -50,13 +55,13 @@ class Trainer:
         self,
         cfg: Config,
         runtime: Runtime,
-        tracker: Tracker,
+        logger: RunLogger,
         character: Character,
         upstream: dict[str, Upstream] | None = None,
     ):
         self.cfg = cfg
-        self.rt = runtime
-        self.tracker = tracker
+        self.runtime = runtime
+        self.logger = logger
         self.character = character
         self.state = LoopState()
         self.ckpt_dir = Path(cfg.run_dir) / "checkpoints"
@@ -74,7 +79,8 @@ class Trainer:
             for c, rc in zip(components, res, strict=True)
         }
         self.workers = [
-            runtime.spawn(RolloutActor, cfg, i, name=f"rollout-{i}", resources=worker_res) for i in range(num_workers)
+            runtime.spawn(RolloutActor, cfg, i, type(self.method), name=f"rollout-{i}", resources=worker_res)
+            for i in range(num_workers)
         ]
         self.worker_versions = [-1] * len(self.workers)
         # Settings the method gives every worker (`configure_workers`), and which of them each worker has.
@@ -98,8 +104,6 @@ class Trainer:
 
         Weights holding a NaN or inf are never published: the workers keep the last good ones, and the
         refusal is counted (`loop/nonfinite_weights_skipped`) and warned about once."""
-        import numpy as np
-        import torch
 
         def finite(x: Any) -> bool:  # tensors and arrays anywhere in the (possibly nested) state
             if isinstance(x, torch.Tensor):
@@ -127,7 +131,7 @@ class Trainer:
                 return
             if weights.version < self.weights_version:  # the learner was rolled back: every worker refreshes
                 self.worker_versions = [-1] * len(self.workers)
-            self.weights_ref = self.rt.put(weights)
+            self.weights_ref = self.runtime.put(weights)
             self.weights_version = weights.version
 
     def configure_workers(self, **settings: Any) -> None:
@@ -142,12 +146,12 @@ class Trainer:
         pending = []
         for i, worker in enumerate(self.workers):
             if self.worker_settings_versions[i] < self.settings_version:
-                self.rt.call(worker, "configure", self.worker_settings)
+                self.runtime.call(worker, "configure", self.worker_settings)
                 self.worker_settings_versions[i] = self.settings_version
             if self.weights_version - self.worker_versions[i] > staleness or self.worker_versions[i] < 0:
-                self.rt.call(worker, "set_weights", self.weights_ref)
+                self.runtime.call(worker, "set_weights", self.weights_ref)
                 self.worker_versions[i] = self.weights_version
-            pending.append(self.rt.call(worker, "collect", steps))
+            pending.append(self.runtime.call(worker, "collect", steps))
         return pending
 
     def worker_came_back(self, w: int, version: int) -> None:
@@ -168,7 +172,7 @@ class Trainer:
 
     def worker_restarts(self) -> int:
         if self.restarts < 0 or self.state.iteration % 10 == 0:  # the runtime's count costs ~15 ms a worker on Ray
-            self.restarts = sum(self.rt.restarts(w) for w in self.workers)
+            self.restarts = sum(self.runtime.restarts(w) for w in self.workers)
         return self.restarts
 
     def check_alive(self, key: str, incarnation: str) -> None:
@@ -182,7 +186,7 @@ class Trainer:
         if path is None:
             log.warning("%s restarted before the first checkpoint: it starts over", key)
             return
-        self.rt.get(self.rt.call(self.handles[key], "load_state_dict", checkpoint.load(path)[key]))
+        self.runtime.get(self.runtime.call(self.handles[key], "load_state_dict", checkpoint.load(path)[key]))
         log.warning("%s restarted: reloaded from %s", key, path.name)
 
     # One iteration -----------------------------------------------------------------
@@ -204,16 +208,16 @@ class Trainer:
 
     # Checkpoints -------------------------------------------------------------------
     def save(self) -> Path:
-        rt = self.rt
+        rt = self.runtime
         state = {key: rt.get(rt.call(h, "state_dict")) for key, h in self.handles.items()}
         state.update(
             loop=asdict(self.state),
             method=self.method.state_dict(),
             workers=rt.get([rt.call(w, "state_dict") for w in self.workers]),
-            run_id=self.tracker.run_id,
+            run_id=self.logger.run_id,
         )
         path = checkpoint.save(self.ckpt_dir, self.state.iteration, state)
-        self.tracker.log_artifact(str(path), "checkpoints")
+        self.logger.log_artifact(str(path), "checkpoints")
         return path
 
     def restore(self, path: Path) -> None:
@@ -221,7 +225,7 @@ class Trainer:
         missing = [k for k in self.handles if k not in state]
         if missing:
             raise ValueError(f"{path}: checkpoint has no state for {missing}; was it written by another method?")
-        rt = self.rt
+        rt = self.runtime
         self.state = LoopState(**state["loop"])
         self.method.load_state_dict(state["method"])
         rt.get([rt.call(h, "load_state_dict", state[key]) for key, h in self.handles.items()])
@@ -235,7 +239,7 @@ class Trainer:
         self.method.start(self)
         if cfg.eval.at_start and self.state.iteration == 0 and not self.state.baseline:
             self.state.baseline = self.method.evaluate(self, final=False)
-            self.tracker.log_metrics(self.state.baseline, step=0)
+            self.logger.log_metrics(self.state.baseline, step=0)
         self.system = None
         if cfg.tracking.enabled and cfg.tracking.system_metrics_s > 0:
             self.system = SystemMetrics(cfg.tracking.system_metrics_s)
@@ -246,7 +250,7 @@ class Trainer:
                 self.system.close()
         self.method.finish(self)
         final = self.method.evaluate(self, final=True)
-        self.tracker.log_metrics(final, step=self.state.samples)
+        self.logger.log_metrics(final, step=self.state.samples)
         self.save()
         self.export_model()
         return {**last, **final}
@@ -264,7 +268,7 @@ class Trainer:
             i = self.state.iteration
             if loop.eval_every and i % loop.eval_every == 0 and i < loop.iterations:
                 metrics.update(self.method.evaluate(self, final=False))
-            self.tracker.log_metrics(metrics, step=self.state.samples)
+            self.logger.log_metrics(metrics, step=self.state.samples)
             if loop.checkpoint_every and i % loop.checkpoint_every == 0 and i < loop.iterations:
                 self.save()
             bar.update(1)
@@ -280,9 +284,6 @@ class Trainer:
         weights = self.method.policy_weights(self)
         if weights is None:
             return
-        from orchestrator.components import load_world
-        from orchestrator.tracking.model import deployable, log_policy
-
-        found = deployable(self.cfg, type(self.method), weights, *load_world(self.cfg))
+        found = deployable(self.cfg, type(self.method), weights, *self.method.character_and_library())
         if found is not None:
-            self.model_uri = log_policy(self.tracker, *found, Path(self.cfg.run_dir))
+            self.model_uri = log_policy(self.logger, *found, Path(self.cfg.run_dir))

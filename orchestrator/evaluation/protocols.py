@@ -11,7 +11,7 @@
 - pose error after dynamic time warping (AMP Eq. 10, Table 3), for PPO policies:
   `eval.pose_episodes` episodes of up to `eval.pose_seconds`, with a figure of the
   error over time.
-- videos (`orchestrator.video`, with `eval.video`): time-until-fall rollouts and a tracked clip beside its
+- videos (`orchestrator.evaluation.video`, with `eval.video`): time-until-fall rollouts and a tracked clip beside its
   reference, or one episode of a PPO policy beside its reference, as MP4s under `videos/<name>/`.
 
 A progress bar ("eval", off with `progress=false`) names the phase running: evaluation at the paper's
@@ -31,10 +31,10 @@ import torch
 from matplotlib.figure import Figure
 from tqdm import tqdm
 
-from orchestrator import video
-from orchestrator.components import sim_config
+from orchestrator.evaluation import video
 from orchestrator.schema import Config
-from orchestrator.tracking.base import Tracker
+from orchestrator.tracking.base import RunLogger
+from orchestrator.world import evaluation_sim_config
 from workers.evaluation import random_sampling, time_until_fall, tracking_error
 from workers.imitation_eval import pose_error_episodes
 from workers.learners.base import Weights
@@ -50,7 +50,7 @@ def evaluate_controller(
     character: Character,
     library: MotionLibrary,
     weights: Weights,
-    tracker: Tracker,
+    logger: RunLogger,
     iteration: int,
     final: bool,
 ) -> dict[str, float]:
@@ -58,14 +58,14 @@ def evaluate_controller(
     controller.load_state_dict(weights.state)
     controller.eval()
     name = "final" if final else f"iter-{iteration:07d}"
-    videos = video.videos_enabled(cfg, tracker.run_id)
+    videos = video.videos_enabled(cfg, logger.run_id)
     with Progress(cfg, 3 + 2 * videos) as progress, torch.no_grad():
         with progress.phase("video rollouts", skip=not videos):
-            job = video.controller_videos(cfg, character, library, controller, tracker.run_id)
+            job = video.controller_videos(cfg, character, library, controller, logger.run_id)
         with job:  # renders in a child process while the protocols run
             fall, track, walk = _controller_protocols(cfg, character, library, controller, progress)
             with progress.phase("videos", skip=not videos):
-                job.log(tracker, f"videos/{name}")
+                job.log(logger, f"videos/{name}")
     clips = {k: v for k, v in track.items() if k not in ("mean", "segments")}
     metrics = {
         "eval/time_until_fall_mean": float(fall["mean"]),
@@ -83,11 +83,11 @@ def evaluate_controller(
         "tracking": track,
         "random_sampling": {k: v for k, v in walk.items() if k != "roots"},
     }
-    tracker.log_dict(_jsonable(report), f"eval/{name}.json")
+    logger.log_dict(jsonable(report), f"eval/{name}.json")
     with tempfile.TemporaryDirectory() as tmp:
         png = Path(tmp) / f"{name}.png"
         _plot(fall, clips, walk, png, f"policy version {weights.version}")
-        tracker.log_artifact(str(png), "eval")
+        logger.log_artifact(str(png), "eval")
     return metrics
 
 
@@ -102,7 +102,7 @@ def _controller_protocols(
             library,
             num_rollouts=cfg.eval.fall_rollouts,
             max_seconds=cfg.eval.fall_max_seconds,
-            sim_config=sim_config(cfg),
+            sim_config=evaluation_sim_config(cfg),
             seed=cfg.seed,
         )
     with progress.phase("tracking"):
@@ -111,7 +111,7 @@ def _controller_protocols(
             library,
             character,
             clip_seconds=cfg.eval.tracking_seconds,
-            sim_config=sim_config(cfg),
+            sim_config=evaluation_sim_config(cfg),
             seed=cfg.seed,
         )
     with progress.phase("random sampling"):
@@ -121,7 +121,7 @@ def _controller_protocols(
             library,
             num_rollouts=cfg.eval.random_rollouts,
             steps=cfg.eval.random_steps,
-            sim_config=sim_config(cfg),
+            sim_config=evaluation_sim_config(cfg),
             seed=cfg.seed,
         )
     return fall, track, walk
@@ -149,11 +149,11 @@ class Progress:
         self.bar.close()
 
 
-def _jsonable(x: Any) -> Any:
+def jsonable(x: Any) -> Any:
     if isinstance(x, dict):
-        return {str(k): _jsonable(v) for k, v in x.items()}
+        return {str(k): jsonable(v) for k, v in x.items()}
     if isinstance(x, (list, tuple, np.ndarray)):
-        return [_jsonable(v) for v in x]
+        return [jsonable(v) for v in x]
     if isinstance(x, (np.floating, np.integer)):
         return x.item()
     return x
@@ -184,17 +184,17 @@ def evaluate_imitation(
     character: Character,
     library: MotionLibrary,
     policy: GaussianPolicy,
-    tracker: Tracker,
+    logger: RunLogger,
     iteration: int,
     final: bool,
 ) -> dict[str, float]:
     """AMP's pose error after DTW (Table 3) for a PPO policy's deterministic actions, with its figure, and
     a video of one episode beside its reference."""
     name = "final" if final else f"iter-{iteration:07d}"
-    videos = video.videos_enabled(cfg, tracker.run_id)
+    videos = video.videos_enabled(cfg, logger.run_id)
     with Progress(cfg, 1 + 2 * videos) as progress:
         with progress.phase("video episode", skip=not videos):
-            job = video.policy_videos(cfg, character, library, policy, tracker.run_id)
+            job = video.policy_videos(cfg, character, library, policy, logger.run_id)
         with job:  # renders in a child process while the episodes run
             with progress.phase("pose error"):
                 pose = pose_error_episodes(
@@ -203,21 +203,21 @@ def evaluate_imitation(
                     library,
                     num_episodes=cfg.eval.pose_episodes,
                     max_seconds=cfg.eval.pose_seconds,
-                    sim_config=sim_config(cfg),
+                    sim_config=evaluation_sim_config(cfg),
                     seed=cfg.seed,
                 )
             with progress.phase("videos", skip=not videos):
-                job.log(tracker, f"videos/{name}")
+                job.log(logger, f"videos/{name}")
     metrics = {
         "eval/pose_error_dtw": pose["dtw"],
         "eval/pose_error_per_frame": pose["per_frame"],
         "eval/episode_seconds": pose["seconds"],
     }
-    tracker.log_dict(_jsonable({"iteration": iteration, "policy_version": policy.version, **pose}), f"eval/{name}.json")
+    logger.log_dict(jsonable({"iteration": iteration, "policy_version": policy.version, **pose}), f"eval/{name}.json")
     with tempfile.TemporaryDirectory() as tmp:
         png = Path(tmp) / f"pose-{name}.png"
         _plot_pose(pose, png, f"policy version {policy.version}")
-        tracker.log_artifact(str(png), "eval")
+        logger.log_artifact(str(png), "eval")
     return metrics
 
 

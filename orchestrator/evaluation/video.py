@@ -8,8 +8,8 @@ writer: H.264, yuv420p, playable in the MLflow UI) while the evaluation's other 
 The GL backend. MuJoCo picks its OpenGL platform from MUJOCO_GL once, when it is first imported, and by
 then this process has imported it for the simulator, with whatever MUJOCO_GL said (usually nothing,
 which means GLFW and a display). So the frames are rendered in a child process
-(`python -m orchestrator.video <job dir> <output dir>`) started with MUJOCO_GL set: the user's MUJOCO_GL when there
-is one, else `egl` and then `osmesa` (both headless; EGL uses a GPU when there is one, Mesa's llvmpipe
+(`python -m orchestrator.evaluation.video <job dir> <output dir>`) started with MUJOCO_GL set: the user's
+MUJOCO_GL when there is one, else `egl` and then `osmesa` (both headless; EGL uses a GPU when there is one, Mesa's llvmpipe
 otherwise). The first backend that works is kept for the rest of the process. A child also keeps a GL
 crash (a driver's segfault) out of training. When no backend works, one warning per run names each
 MUJOCO_GL tried and what failed, and the run goes on without videos (no further attempts).
@@ -37,7 +37,7 @@ from workers.render import Recording
 
 if TYPE_CHECKING:
     from orchestrator.schema import Config
-    from orchestrator.tracking.base import Tracker
+    from orchestrator.tracking.base import RunLogger
     from workers.models.vae import VAEController
     from workers.motion.library import MotionLibrary
     from workers.policies import GaussianPolicy
@@ -87,12 +87,13 @@ def controller_videos(
 ) -> RenderJob:
     """`eval.video_rollouts` time-until-fall rollouts and one tracked clip with its reference as a ghost,
     recorded now and rendering in the background (an empty job with `eval.video=false` or without GL)."""
-    from orchestrator.components import sim_config
+    # Imported here, not above: the rendering child runs this module and needs none of it (nor torch).
+    from orchestrator.world import evaluation_sim_config
     from workers.render import record_fall_rollouts, record_tracking
 
     if not videos_enabled(cfg, run):
         return RenderJob([], 0.0, 0, 0, run)
-    e, sim = cfg.eval, sim_config(cfg)
+    e, sim = cfg.eval, evaluation_sim_config(cfg)
     recordings = record_fall_rollouts(controller, character, library, e.video_rollouts, e.video_seconds, sim, cfg.seed)
     recordings.append(record_tracking(controller, character, library, e.video_seconds, sim, cfg.seed))
     return RenderJob(recordings, sim.control_hz, e.video_width, e.video_height, run)
@@ -103,12 +104,12 @@ def policy_videos(
 ) -> RenderJob:
     """One episode of a PPO policy's deterministic actions from a reference start, its reference as a ghost,
     recorded now and rendering in the background (an empty job with `eval.video=false` or without GL)."""
-    from orchestrator.components import sim_config
+    from orchestrator.world import evaluation_sim_config
     from workers.render import record_policy_episode
 
     if not videos_enabled(cfg, run):
         return RenderJob([], 0.0, 0, 0, run)
-    e, sim = cfg.eval, sim_config(cfg)
+    e, sim = cfg.eval, evaluation_sim_config(cfg)
     recording = record_policy_episode(policy.mean_action, character, library, e.video_seconds, sim, cfg.seed)
     return RenderJob([recording], sim.control_hz, e.video_width, e.video_height, run)
 
@@ -120,7 +121,7 @@ class RenderJob:
     """MP4s of recordings, rendered and encoded by a child process that runs while the caller goes on.
 
     `wait()` returns the files (trying the next GL backend, in the foreground, if the first failed);
-    `log(tracker, path)` waits and logs them; `close()` (or leaving a `with` block) stops the child if it
+    `log(logger, path)` waits and logs them; `close()` (or leaving a `with` block) stops the child if it
     still runs and deletes the files. Width and height are rounded down to even numbers (H.264 in
     yuv420p needs them even).
     """
@@ -150,7 +151,7 @@ class RenderJob:
         if backend in HEADLESS_BACKENDS:
             env["PYOPENGL_PLATFORM"] = backend  # PyOpenGL's platform must agree with MuJoCo's
         env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(_PROJECT_ROOT), env.get("PYTHONPATH")]))
-        command = [sys.executable, "-m", "orchestrator.video", str(self._job), str(self.dir)]
+        command = [sys.executable, "-m", "orchestrator.evaluation.video", str(self._job), str(self.dir)]
         self._started, self._error = time.monotonic(), None
         with open(self._job / f"stderr-{len(self._errors)}.txt", "w") as stderr:  # a file: a pipe could fill up
             try:
@@ -192,11 +193,11 @@ class RenderJob:
                 self._paths = []
         return self._paths
 
-    def log(self, tracker: Tracker, artifact_path: str) -> list[str]:
+    def log(self, logger: RunLogger, artifact_path: str) -> list[str]:
         """Wait for the videos and log each under `artifact_path`; the names logged."""
         paths = self.wait()
         for path in paths:
-            tracker.log_artifact(path, artifact_path)
+            logger.log_artifact(path, artifact_path)
         return [p.name for p in paths]
 
     def _stop(self) -> None:

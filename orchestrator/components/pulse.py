@@ -13,10 +13,10 @@ from typing import Any
 import numpy as np
 import torch
 
-from orchestrator.algos.demos import expert_weights
-from orchestrator.components import LearnerActor, load_world, seed_of
+from orchestrator.components.base import LearnerActor
 from orchestrator.schema import Config
-from orchestrator.stages import Upstream
+from orchestrator.upstream import Upstream, expert_weights
+from orchestrator.world import load_character_and_library, seed_of
 from workers.distill import teacher_actions
 from workers.learners.vae import VAEBatch, VAELearner
 from workers.models import body_state
@@ -29,7 +29,7 @@ class PulseActor(LearnerActor):
         super().__init__()
         torch.set_num_threads(cfg.runtime.torch_threads)
         torch.manual_seed(seed_of(cfg, 3))
-        self.character, self.library = load_world(cfg)
+        self.character, self.library = load_character_and_library(cfg)
         t = expert_weights(expert).state  # downloaded here: a restarted actor needs nothing from the driver
         self.teacher = expert_module(t, num_bodies, action_dim)
         self.residual = bool(t["residual"])

@@ -1,6 +1,6 @@
-"""Learner actors that train on a fixed dataset of expert demonstrations (PhysicsVAE's two stages).
+"""PhysicsVAE's learner actors, trained on a fixed dataset of expert demonstrations: the simulation layer and the VAE.
 
-Each is built with the upstream stages it reads (`orchestrator.stages.Upstream`, small), and
+Each is built with the upstream stages it reads (`orchestrator.upstream.Upstream`, small), and
 downloads the demos (and the frozen layer) from the tracking store itself, so that a
 restarted actor, or one on another node, needs nothing from the driver. It splits the
 episodes into training and held-out rollouts (`algo.offline.holdout_rollouts`), and
@@ -17,23 +17,15 @@ from typing import Any
 import numpy as np
 import torch
 
-from orchestrator.algos.demos import load_demos
-from orchestrator.components import LearnerActor, seed_of
+from orchestrator.components.base import LearnerActor
 from orchestrator.schema import Config
-from orchestrator.stages import StageError, Upstream
+from orchestrator.upstream import Upstream, layer_state, load_demos
+from orchestrator.world import seed_of
 from workers.demos import DemoSet
 from workers.learners.vae import VAEBatch, VAELearner
 from workers.learners.world_model import WorldModelBatch, WorldModelLearner
 from workers.models import body_state
 from workers.models.world_model import WorldModel
-
-
-def layer_state(up: Upstream) -> dict[str, Any]:
-    """The frozen simulation layer's weights from a world_model stage's last checkpoint."""
-    state = up.checkpoint()
-    if "world_model" not in state:
-        raise StageError(f"{up.describe()}: its checkpoint has no world_model state")
-    return state["world_model"]["learner"]["module"]
 
 
 def world_model_of(cfg: Config, num_bodies: int, action_dim: int) -> WorldModel:

@@ -8,30 +8,26 @@ policy's (`eval.at_start`), where the figures, videos and model are, and the `ml
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
 from orchestrator.runtime.base import Runtime
 from orchestrator.schema import Config
-from orchestrator.tracking.base import Tracker
+from orchestrator.tracking.base import RunLogger
+from orchestrator.tracking.uri import store_uri
 
 # Spread and per-clip breakdowns stay in MLflow; the table keeps one line per measure.
 HIDDEN_SUFFIXES = ("_std", "_median")
 
 
-def tracking_uri(cfg: Config) -> str:
-    return cfg.tracking.uri or f"sqlite:///{(Path(cfg.run_dir) / 'mlflow.db').resolve()}"
-
-
 def mlflow_line(cfg: Config, run_id: str | None) -> str:
-    uri = tracking_uri(cfg)
+    uri = store_uri(cfg.tracking.uri, cfg.run_dir)
     run = f"run {run_id}" if run_id else "run not created yet: the server is away, records are spooled"
     if uri.startswith("http"):
         return f"MLflow: {uri}  ({run})"
     return f"MLflow UI: mlflow ui --backend-store-uri {uri} --host 127.0.0.1  ({run})"
 
 
-def where_to_watch(cfg: Config, tracker: Tracker, runtime: Runtime) -> str:
-    lines = [mlflow_line(cfg, tracker.run_id)] if cfg.tracking.enabled else []
+def where_to_watch(cfg: Config, logger: RunLogger, runtime: Runtime) -> str:
+    lines = [mlflow_line(cfg, logger.run_id)] if cfg.tracking.enabled else []
     dashboard = runtime.dashboard_url()
     if dashboard:
         lines.append(f"Ray dashboard: {dashboard}  (its token: ray get-auth-token)")
@@ -63,20 +59,24 @@ def table(baseline: dict[str, float], final: dict[str, float]) -> str:
     return "\n".join(rows)
 
 
-def artifact_location(cfg: Config, tracker: Tracker) -> str | None:
+def artifact_location(cfg: Config, logger: RunLogger) -> str | None:
     """The run's artifact root (a local directory for the embedded store), or None if unknown."""
-    if not cfg.tracking.enabled or tracker.run_id is None:
+    if not cfg.tracking.enabled or logger.run_id is None:
         return None
     try:
         from mlflow import MlflowClient
 
-        return MlflowClient(tracking_uri(cfg)).get_run(tracker.run_id).info.artifact_uri.removeprefix("file://")
+        return (
+            MlflowClient(store_uri(cfg.tracking.uri, cfg.run_dir))
+            .get_run(logger.run_id)
+            .info.artifact_uri.removeprefix("file://")
+        )
     except Exception:  # noqa: BLE001 - the server is away: the summary says less
         return None
 
 
 def closing(
-    cfg: Config, tracker: Tracker, baseline: dict[str, float], final: dict[str, float], model_uri: str | None
+    cfg: Config, logger: RunLogger, baseline: dict[str, float], final: dict[str, float], model_uri: str | None
 ) -> str:
     lines = [f"\n{cfg.algo.name} finished: {cfg.tracking.run_name or ''}".rstrip()]
     rows = table(baseline, final)
@@ -84,12 +84,12 @@ def closing(
         lines += ["", rows]
         if not baseline:
             lines.append("  (no untrained baseline: eval.at_start=false or a resumed run)")
-    where = artifact_location(cfg, tracker)
+    where = artifact_location(cfg, logger)
     if where:
         lines += ["", f"Figures:  {where}/eval/"] + ([f"Videos:   {where}/videos/"] if cfg.eval.video else [])
     if model_uri:
         lines.append(f"Model:    {model_uri}  (mlflow.pytorch.load_model)")
     if cfg.tracking.enabled:
-        lines.append(mlflow_line(cfg, tracker.run_id))
+        lines.append(mlflow_line(cfg, logger.run_id))
     lines.append(f"Run directory: {cfg.run_dir}")
     return "\n".join(lines)

@@ -15,10 +15,10 @@ from typing import Any
 import numpy as np
 import torch
 
-from orchestrator.components import LearnerActor, seed_of
-from orchestrator.components_offline import layer_state
+from orchestrator.components.base import LearnerActor
 from orchestrator.schema import Config
-from orchestrator.stages import StageError, Upstream
+from orchestrator.upstream import StageError, Upstream, existing_run, layer_state
+from orchestrator.world import seed_of
 from workers.learners.task import GoalBuffer, TaskLearner
 from workers.models.world_model import WorldModel
 from workers.replay import Trajectory
@@ -53,12 +53,8 @@ def _world_model(up: Upstream, cfg: Config, state: dict[str, Any]) -> tuple[Any,
     if "world_model" in state and cfg.algo.world_model is not None:
         return cfg.algo.world_model, state["world_model"]["module"]
     if "world_model" in up.lineage:
-        from mlflow.tracking import MlflowClient
-
-        from orchestrator.stages import _existing
-
         cache = up.cache.parent / f"{up.role}.world_model"
-        layer = _existing(MlflowClient(up.uri), f"{up.role}.world_model", up.lineage["world_model"], up.uri, cache)
+        layer = existing_run(f"{up.role}.world_model", up.lineage["world_model"], up.uri, cache)
         return layer.config().algo.world_model, layer_state(layer)
     raise StageError(
         f"{up.describe()}: a {cfg.algo.name} skill model has no world model to learn through; use algo.task.trainer=ppo"

@@ -1,0 +1,58 @@
+"""What every component shares: the learner actors' common surface, and how a component tells its lives apart.
+
+Components are the stateful parts of a method (learners, a replay buffer) and the rollout workers, as
+plain classes that build what they need from the validated config inside whatever process hosts them
+(this one, or a Ray actor) and expose coarse methods: a rollout worker collects hundreds of steps per
+call, a learner takes a list of batches per call. None of them knows where it runs. One module per
+method holds its own (`controlvae`, `physicsvae`, `pulse`, `amp`, `task`; `ppo` is shared by the PPO
+methods); `rollout` and `replay` serve every method.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from typing import Any
+
+import numpy as np
+
+from workers.learners.base import Learner, Weights
+
+
+def mean_metrics(metrics: list[dict[str, float]]) -> dict[str, float]:
+    if not metrics:
+        return {}
+    keys = metrics[-1].keys()
+    out = {k: float(np.mean([m[k] for m in metrics if k in m])) for k in keys}
+    out["updates"] = float(len(metrics))
+    return out
+
+
+def incarnation() -> str:
+    """Tells one life of a component from the next: a restarted Ray actor is a new process."""
+    return f"{os.getpid()}-{time.time_ns()}"
+
+
+class LearnerActor:
+    """What both learner actors share: weights, checkpoints, and the report every `train` returns."""
+
+    learner: Learner
+
+    def __init__(self) -> None:
+        self.incarnation = incarnation()
+
+    def report(self, metrics: list[dict[str, float]]) -> dict[str, Any]:
+        """Mean metrics of the updates, the weights' version, and this actor's incarnation."""
+        out: dict[str, Any] = mean_metrics(metrics)
+        out["version"] = float(self.learner.version)
+        out["incarnation"] = self.incarnation
+        return out
+
+    def get_weights(self) -> Weights:
+        return self.learner.get_weights()
+
+    def state_dict(self) -> dict[str, Any]:
+        return self.learner.state_dict()
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.learner.load_state_dict(state)

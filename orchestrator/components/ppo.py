@@ -1,0 +1,87 @@
+"""PPO's learner actor (`learner-ppo`), shared by the PPO methods: AMP, the tracking expert, the task's PPO trainer.
+
+It takes the rollout workers' trajectories as they are (on Ray, as object references resolved
+inside the actor, so the data goes from the workers to the learners without passing through the
+driver) and returns only metrics.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from typing import Any
+
+import numpy as np
+import torch
+
+from orchestrator.components.base import LearnerActor
+from orchestrator.schema import Config
+from orchestrator.world import seed_of
+from workers.learners.ppo import PPOLearner, Rollout
+from workers.replay import Trajectory
+
+
+def rollout_of(trajs: tuple[Trajectory, ...], rewards: list[np.ndarray] | None) -> Rollout:
+    """The workers' trajectories side by side (environments concatenated) as one PPO rollout [T, ΣM]."""
+
+    def cat(key: str) -> np.ndarray:
+        return np.concatenate([tr.extras[key] for tr in trajs], axis=1)
+
+    obs = cat("obs")
+    final = np.zeros_like(obs)
+    offset = 0
+    for tr in trajs:
+        rows = tr.extras["final_rows"]
+        final[rows[:, 0], offset + rows[:, 1]] = tr.extras["final_obs"]
+        offset += tr.done.shape[1]
+    reward = np.concatenate(rewards, axis=1) if rewards is not None else cat("reward")
+    return Rollout(
+        obs=obs,
+        actions=cat("action"),  # the policy's samples (PD targets, or offsets for a residual policy)
+        log_probs=cat("log_prob"),
+        rewards=reward,
+        dones=np.concatenate([tr.done for tr in trajs], axis=1).astype(np.float32),
+        last_obs=np.concatenate([tr.extras["last_obs"] for tr in trajs], axis=0),
+        values=None,  # V(o) of the whole rollout in one batch, by the learner before it updates
+        truncated=cat("truncated").astype(np.float32),
+        final_obs=final,
+    )
+
+
+class PPOActor(LearnerActor):
+    """PPO on the workers' trajectories; rewards from the trajectories' `reward` or given (AMP)."""
+
+    def __init__(self, cfg: Config, obs_dim: int, act_dim: int):
+        super().__init__()
+        torch.set_num_threads(cfg.runtime.torch_threads)
+        self.learner = PPOLearner(obs_dim, act_dim, replace(cfg.algo.ppo, seed=seed_of(cfg, 5)))
+        self.running_return: np.ndarray | None = None  # per environment, across calls
+        self.running_length: np.ndarray | None = None
+
+    def train(self, *trajs: Trajectory, rewards: list[np.ndarray] | None = None) -> dict[str, Any]:
+        rollout = rollout_of(trajs, rewards)
+        lag = self.learner.version - min(tr.version for tr in trajs)  # 0 when collection is synchronous
+        metrics = self.learner.train_on_rollout(rollout)
+        metrics.update(self._episodes(np.asarray(rollout.rewards), np.asarray(rollout.dones) > 0))
+        out = self.report([metrics])
+        out["trajectory_versions"] = [int(tr.version) for tr in trajs]
+        out["policy_lag"] = float(lag)
+        return out
+
+    def _episodes(self, rewards: np.ndarray, dones: np.ndarray) -> dict[str, float]:
+        """Undiscounted return and length of the episodes that ended in this rollout."""
+        if self.running_return is None or self.running_return.shape != rewards.shape[1:]:
+            self.running_return = np.zeros(rewards.shape[1])
+            self.running_length = np.zeros(rewards.shape[1])
+        returns, lengths = [], []
+        for t in range(rewards.shape[0]):
+            self.running_return += rewards[t]
+            self.running_length += 1
+            ended = np.flatnonzero(dones[t])
+            returns.extend(self.running_return[ended].tolist())
+            lengths.extend(self.running_length[ended].tolist())
+            self.running_return[ended] = 0.0
+            self.running_length[ended] = 0.0
+        out = {"episodes": float(len(returns))}
+        if returns:
+            out.update(episode_return=float(np.mean(returns)), episode_length=float(np.mean(lengths)))
+        return out

@@ -1,0 +1,140 @@
+"""YAML and overrides to a validated `Config`: Hydra composes `conf/`, the schema checks it, the method's sections stay.
+
+- `compose(overrides)`: conf/config.yaml with `overrides`, inside a running Hydra app or not
+  (upstream stages, benchmarks and tests compose this way);
+- `validate(cfg)`: the composed config as `orchestrator.schema` objects, or a `ConfigError` naming
+  the key of the first bad value. A method uses some of `algo`'s sections (`Method.sections`); a
+  section it does not use must stay at its defaults and is dropped (None);
+- `find_method(target)`: the method class that `algo._target_` names, found by its dotted path the
+  way Hydra's `_target_` finds any class: no method module is imported here by name.
+"""
+
+from __future__ import annotations
+
+import importlib
+from pathlib import Path
+from typing import Any
+
+from hydra.core.config_store import ConfigStore
+from omegaconf import DictConfig, OmegaConf
+
+from orchestrator.schema import SECTIONS, AlgoConfig, Config, ConfigError
+
+CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
+
+
+def compose(overrides: list[str]) -> Any:
+    """conf/config.yaml composed with `overrides` (inside a running Hydra app or not)."""
+    from hydra import compose as hydra_compose
+    from hydra import initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    register()  # the schema the defaults list starts from
+    if GlobalHydra.instance().is_initialized():
+        return hydra_compose("config", overrides=overrides)
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        return hydra_compose("config", overrides=overrides)
+
+
+def find_method(target: str) -> type:
+    """The class `target` names ("package.module.Class"), if it is a method: it declares its config
+    `sections`, the upstream stages it `needs` and its `components`."""
+    module, _, name = target.rpartition(".")
+    cls = getattr(importlib.import_module(module), name, None) if module else None
+    if not (isinstance(cls, type) and all(hasattr(cls, a) for a in ("sections", "needs", "components", "step"))):
+        raise TypeError(f"{target} is not a method (a subclass of orchestrator.algos.base.Method)")
+    return cls
+
+
+# The learners' configs name their keys from their own root; here they live under algo.
+KEY_ROOTS = {"vae.": "algo.vae.", "world_model.": "algo.world_model.", "task.": "algo.task."}
+
+
+def full_key(message: str) -> str:
+    for short, full in KEY_ROOTS.items():
+        if message.startswith(short):
+            return full + message[len(short) :]
+    return message
+
+
+def register() -> None:
+    cs = ConfigStore.instance()
+    cs.store(name="schema", node=Config)
+
+
+def validate(cfg: DictConfig | dict[str, Any]) -> Config:
+    """The composed config as schema objects; raises ConfigError naming the key of a bad value."""
+    if not isinstance(cfg, DictConfig):
+        cfg = OmegaConf.create(cfg)
+    try:
+        structured = OmegaConf.merge(OmegaConf.structured(Config), cfg)
+    except Exception as e:  # OmegaConf's type errors name the full key
+        raise ConfigError(str(e)) from None
+    method = _method(structured.algo)
+    for section, schema in SECTIONS.items():
+        node = structured.algo[section]
+        if section not in method.sections:
+            _check_unused(structured.algo, section, schema, method)
+            continue
+        try:  # the learners' own checks, with the section's key in front
+            OmegaConf.to_object(node)
+        except ConfigError:
+            raise
+        except ValueError as e:
+            raise ConfigError(_section_key(section, str(e))) from None
+    try:
+        out = OmegaConf.to_object(structured)
+    except ValueError as e:
+        raise ConfigError(full_key(str(e))) from None
+    for section in SECTIONS:
+        if section not in method.sections:
+            setattr(out.algo, section, None)
+    _check_needs(out.algo, method)
+    if out.algo.pulse is not None and out.algo.pulse.prior_action and out.algo.vae.prior != "learned":
+        raise ConfigError(
+            f"algo.pulse.prior_action: a residual on the prior's mean (PULSE Eq. 4) needs algo.vae.prior=learned, "
+            f"got {out.algo.vae.prior!r} (set algo.pulse.prior_action=false)"
+        )
+    return out
+
+
+def _check_needs(algo: AlgoConfig, method: type) -> None:
+    wanted = tuple(getattr(method, "needs", ()))
+    for role in algo.needs:
+        if role not in wanted:
+            has = ", ".join(wanted) or "none"
+            raise ConfigError(
+                f"algo.needs.{role}: the {algo.name} method does not use a {role} stage (it needs: {has})"
+            )
+    for role in wanted:
+        spec = algo.needs.get(role)
+        if not spec or not str(spec).strip():
+            raise ConfigError(
+                f"algo.needs.{role}: the {algo.name} method needs a {role} stage (a stage such as "
+                f"'tracker', or 'run:<run id>')"
+            )
+
+
+def _section_key(section: str, message: str) -> str:
+    full = full_key(message)
+    return full if full.startswith("algo.") else f"algo.{section}: {message}"
+
+
+def _method(algo: DictConfig) -> type:
+    try:
+        return find_method(algo._target_)
+    except Exception as e:
+        raise ConfigError(f"algo._target_: cannot use {algo._target_!r} as a method ({e})") from None
+
+
+def _check_unused(algo: DictConfig, section: str, schema: type, method: type) -> None:
+    """A section the method does not use must be left at its defaults."""
+    given = OmegaConf.to_container(algo[section]) if algo[section] is not None else None
+    default = OmegaConf.to_container(OmegaConf.structured(schema))
+    if given is None or given == default:
+        return
+    key = next((k for k in given if given[k] != default.get(k)), None)
+    uses = ", ".join(method.sections) or "none"
+    raise ConfigError(
+        f"algo.{section}.{key}: the {algo.name} method ({algo._target_}) has no {section} component (it uses: {uses})"
+    )

@@ -1,0 +1,191 @@
+"""A finished stage, read back: where its run is, and its config, checkpoint, metrics and outputs.
+
+A run's upstream stages (`algo.needs`, `orchestrator.stages`) reach its method and components as
+`Upstream` objects: small (they pickle into Ray actors), they download the stage's artifacts
+themselves, so that a restarted actor, or one on another node, needs nothing from the driver.
+Each reader names the stage and the artifact when something is missing or unusable (`StageError`):
+
+- `Upstream.config()`, `.checkpoint()`, `.metrics()`, `.artifact(path)`;
+- `expert_weights`: an expert's network (a tracker or amp run's PPO actor, a controlvae run's VAE);
+- `load_demos`, `load_manifest`: the demos dataset an `algo=demos` stage wrote;
+- `layer_state`: PhysicsVAE's simulation layer, from a world_model stage's checkpoint;
+- `find_finished`, `existing_run`: a finished run by stage hash, or by id.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from orchestrator import checkpoint
+from orchestrator.compose import find_method, validate
+from orchestrator.schema import Config, ConfigError
+from workers.demos import DemoError, DemoSet
+from workers.learners.base import Weights
+
+if TYPE_CHECKING:
+    from mlflow.tracking import MlflowClient
+
+# The demos stage's artifacts (written by `orchestrator.algos.demos`).
+DEMOS_FILE = "demos/demos.npz"
+MANIFEST_FILE = "demos/manifest.json"
+
+
+class StageError(RuntimeError):
+    """An upstream stage that cannot be used; the message names the stage and what is wrong."""
+
+
+@dataclass
+class Upstream:
+    """A finished stage that a run uses: where it is and how to read its outputs."""
+
+    role: str
+    name: str  # the stage's method (algo.name)
+    run_id: str
+    stage_hash: str
+    uri: str
+    cache: Path  # where its artifacts are downloaded
+    reused: bool  # found finished in the store, not run for this one
+    lineage: dict[str, str] = field(default_factory=dict)  # "demos.expert" -> run id, for every stage above
+
+    def describe(self) -> str:
+        return f"stage {self.role} ({self.name}, run {self.run_id})"
+
+    def artifact(self, path: str) -> Path:
+        """The artifact `path` of the stage's run, downloaded; a StageError naming both when it is not there."""
+        from mlflow.tracking import MlflowClient
+
+        local = self.cache / path
+        if local.exists():
+            return local
+        self.cache.mkdir(parents=True, exist_ok=True)
+        try:
+            out = Path(MlflowClient(self.uri).download_artifacts(self.run_id, path, str(self.cache)))
+        except Exception as e:
+            hint = ""
+            if "mlflow-artifacts" in str(e):
+                hint = "; its artifacts are served by a tracking server: give that server as tracking.uri"
+            raise StageError(
+                f"{self.describe()}: artifact {path} is missing or unreadable ({short_error(e)}){hint}"
+            ) from None
+        if not out.exists():
+            raise StageError(f"{self.describe()}: artifact {path} is missing")
+        return out
+
+    def config(self) -> Config:
+        path = self.artifact("config.json")
+        try:
+            return validate(json.loads(path.read_text()))
+        except (json.JSONDecodeError, ConfigError) as e:
+            raise StageError(f"{self.describe()}: artifact config.json is unreadable ({short_error(e)})") from None
+
+    def checkpoint(self) -> dict[str, Any]:
+        """The stage's last checkpoint (state dicts, loaded with weights_only=True)."""
+        from mlflow.tracking import MlflowClient
+
+        try:
+            names = [a.path for a in MlflowClient(self.uri).list_artifacts(self.run_id, "checkpoints")]
+        except Exception as e:
+            raise StageError(f"{self.describe()}: cannot list its checkpoints ({short_error(e)})") from None
+        names = sorted(n for n in names if re.search(r"ckpt-\d+\.pt$", n))
+        if not names:
+            raise StageError(f"{self.describe()}: artifact checkpoints/ckpt-*.pt is missing")
+        path = self.artifact(names[-1])
+        try:
+            return checkpoint.load(path)
+        except checkpoint.CheckpointError as e:  # truncated, not a weights file, not a dict of states
+            raise StageError(f"{self.describe()}: artifact {names[-1]} ({path}): {e.message}") from None
+
+    def metrics(self) -> dict[str, float]:
+        from mlflow.tracking import MlflowClient
+
+        return dict(MlflowClient(self.uri).get_run(self.run_id).data.metrics)
+
+
+def short_error(e: BaseException) -> str:
+    """The first line of an error's message (200 characters at most), else its type's name."""
+    return str(e).strip().splitlines()[0][:200] if str(e).strip() else type(e).__name__
+
+
+def find_finished(client: MlflowClient, stage_hash: str) -> str | None:
+    """The newest FINISHED run with this stage hash, in any experiment of the store."""
+    experiments = [e.experiment_id for e in client.search_experiments()]
+    if not experiments:
+        return None
+    runs = client.search_runs(
+        experiments,
+        filter_string=f"tags.stage_hash = '{stage_hash}' and attributes.status = 'FINISHED'",
+        order_by=["attributes.start_time DESC"],
+        max_results=1,
+    )
+    return runs[0].info.run_id if runs else None
+
+
+def existing_run(role: str, run_id: str, uri: str, cache: Path) -> Upstream:
+    """A run given by its id (`run:<id>`) as the stage `role`: it must be in the store and FINISHED."""
+    from mlflow.tracking import MlflowClient
+
+    try:
+        r = MlflowClient(uri).get_run(run_id)
+    except Exception as e:
+        raise StageError(f"stage {role}: run {run_id} is not in {uri} ({short_error(e)})") from None
+    if r.info.status != "FINISHED":
+        raise StageError(f"stage {role}: run {run_id} is {r.info.status}, not FINISHED")
+    tags = r.data.tags
+    lineage = {
+        k.removeprefix("upstream."): v
+        for k, v in tags.items()
+        if k.startswith("upstream.") and not k.endswith(".reused")
+    }
+    name = tags.get("algo", "?")
+    return Upstream(role, name, run_id, tags.get("stage_hash", run_id), uri, cache, True, lineage)
+
+
+def expert_weights(up: Upstream) -> Weights:
+    """The expert network of an upstream run, as the weights an `ExpertPolicy` loads: a run of a method whose
+    class says it can be one (`Method.expert`: PPO's actor of a tracker or amp run, or a controlvae run's VAE)."""
+    cfg = up.config()
+    cls = find_method(cfg.algo._target_)
+    state = up.checkpoint()
+    version = int(state.get("loop", {}).get("iteration", 0))
+    if cls.expert == "ppo" and "ppo" in state:
+        payload = {
+            "kind": "ppo",
+            "config": cfg.algo.ppo,
+            "observation": cls.observation,
+            "residual": cls.residual,
+            "module": state["ppo"]["module"],
+        }
+    elif cls.expert == "vae" and "vae" in state:
+        payload = {"kind": "vae", "config": cfg.algo.vae, "module": state["vae"]["learner"]["module"]}
+    else:
+        raise StageError(f"{up.describe()}: a {cfg.algo.name} run is not an expert (tracker, amp or controlvae)")
+    return Weights(version, payload)
+
+
+def layer_state(up: Upstream) -> dict[str, Any]:
+    """The frozen simulation layer's weights from a world_model stage's last checkpoint."""
+    state = up.checkpoint()
+    if "world_model" not in state:
+        raise StageError(f"{up.describe()}: its checkpoint has no world_model state")
+    return state["world_model"]["learner"]["module"]
+
+
+def load_manifest(up: Upstream) -> dict[str, Any]:
+    try:
+        return json.loads(up.artifact(MANIFEST_FILE).read_text())
+    except (json.JSONDecodeError, OSError) as e:
+        raise StageError(f"{up.describe()}: artifact {MANIFEST_FILE} is unreadable ({e})") from None
+
+
+def load_demos(up: Upstream) -> tuple[DemoSet, dict[str, Any]]:
+    """The dataset and manifest of an upstream demos stage; a StageError naming the artifact if unusable."""
+    manifest = load_manifest(up)
+    try:
+        demos = DemoSet.load(up.artifact(DEMOS_FILE))
+    except DemoError as e:
+        raise StageError(f"{up.describe()}: artifact {DEMOS_FILE}: {e}") from None
+    return demos, manifest
