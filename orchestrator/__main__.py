@@ -40,7 +40,7 @@ def _is_multirun() -> bool:
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="config")
 def main(dcfg: DictConfig) -> float | None:
-    from orchestrator.sweep import parent_of
+    from orchestrator.sweep.callback import parent_of
 
     parent = parent_of(HydraConfig.get().sweep.dir) if _is_multirun() else None
     try:

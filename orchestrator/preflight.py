@@ -5,7 +5,7 @@ the tracker creates (or, to resume, reopens) an MLflow run, before Ray is starte
 anything is written to the run directory, so that bad input leaves everything already saved as it was:
 
 - the character file is our humanoid's skeleton (`workers.sim.character`) and every clip loads and is
-  plausible (`workers.motion.clip.check_plausible`): the same checks as `python -m orchestrator.motion check`;
+  plausible (`workers.motion.clip.check_plausible`): the same checks as `python -m orchestrator.clips check`;
 - `tracking.uri` has a scheme MLflow knows (checked at composition too; a sweep point takes its parent's);
 - `runtime.address` answers within `runtime.connect_timeout_s` (runtime=ray);
 - with `resume=true`, the last checkpoint in the run directory is complete, a weights file, written by

@@ -24,7 +24,7 @@ from typing import Any
 
 import pytest
 
-from orchestrator.cluster_procs import http_json, session_members
+from orchestrator.cluster.procs import http_json, session_members
 
 pytestmark = [pytest.mark.cluster, pytest.mark.slow]
 

@@ -25,7 +25,7 @@ from omegaconf import open_dict
 
 from orchestrator import preflight
 from orchestrator.__main__ import main
-from orchestrator.motion import main as motion_main
+from orchestrator.clips import main as motion_main
 from orchestrator.schema import ConfigError, register, validate
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -28,7 +28,7 @@ import pytest
 from samples import BVH_DIR, FETCH
 from test_bvh import assert_same_poses, body_globals, write_bvh
 
-from orchestrator import motion as motion_cli
+from orchestrator import clips as motion_cli
 from orchestrator.components import load_world
 from workers.motion.clip import normalize_quats, process
 from workers.motion.errors import ClipError

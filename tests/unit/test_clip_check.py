@@ -1,4 +1,4 @@
-"""`python -m orchestrator.motion check`: summaries of good clips, one clear line for bad ones."""
+"""`python -m orchestrator.clips check`: summaries of good clips, one clear line for bad ones."""
 
 import json
 import subprocess
@@ -7,7 +7,7 @@ import sys
 import numpy as np
 import pytest
 
-from orchestrator.motion import main
+from orchestrator.clips import main
 
 
 def _frame(n=44):
@@ -86,7 +86,7 @@ def test_npz_clip_with_wrong_width(tmp_path, capsys):
 def test_runs_as_a_module(tmp_path):
     bad = _write(tmp_path, [_frame(), _frame(12)])
     proc = subprocess.run(
-        [sys.executable, "-m", "orchestrator.motion", "check", str(bad)], capture_output=True, text=True
+        [sys.executable, "-m", "orchestrator.clips", "check", str(bad)], capture_output=True, text=True
     )
     assert proc.returncode == 1
     assert proc.stderr.strip().endswith("frame 1: expected 44 numbers, got 12")

@@ -87,7 +87,7 @@ def test_root_far_from_the_origin_or_from_its_start(character):
 
 
 def test_the_run_and_the_checker_refuse_alike(character, tmp_path):
-    """Both go through clip.process (the library's load and `orchestrator.motion check`)."""
+    """Both go through clip.process (the library's load and `orchestrator.clips check`)."""
     from workers.motion.formats import npz
     from workers.motion.library import MotionLibrary
 
@@ -98,7 +98,7 @@ def test_the_run_and_the_checker_refuse_alike(character, tmp_path):
     with pytest.raises(ClipError, match=r"jump.npz: frame 7: root moves at 90 m/s from frame 6"):
         MotionLibrary.load(character, [str(path)], fps=FPS, cache_dir=tmp_path / "cache")
     assert not (tmp_path / "cache").exists()  # nothing cached: the next run checks it again
-    from orchestrator.motion import check
+    from orchestrator.clips import check
 
     with pytest.raises(ClipError, match=r"jump.npz: frame 7: root moves at 90 m/s from frame 6"):
         check(str(path))

@@ -6,7 +6,7 @@ import math
 
 import pytest
 
-from orchestrator import report
+from orchestrator.sweep import report
 
 
 def test_curve_summary_of_a_ramp_and_of_a_noisy_curve():
@@ -44,7 +44,7 @@ def test_curve_table_summarises_each_point_over_seeds():
 
 def test_alpha_claims_and_the_spread_figure_from_known_rows(tmp_path):
     """Worked by hand: α = 0 lasts 1 s, α = 1e-3 3 s (3x, beyond the seeds' spread), α = 1e-2 2 s."""
-    from orchestrator.report_physicsvae import alpha_claims, plot_spread, pooled
+    from orchestrator.sweep.physicsvae import alpha_claims, plot_spread, pooled
 
     rows = []
     for alpha, times in ((0.0, (0.9, 1.1)), (1e-3, (2.9, 3.1)), (1e-2, (1.9, 2.1))):

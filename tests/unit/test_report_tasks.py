@@ -11,8 +11,9 @@ import numpy as np
 import pytest
 from omegaconf import OmegaConf
 
-from orchestrator import report
-from orchestrator.report_tasks import (
+from orchestrator.sweep import report
+from orchestrator.sweep.callback import SweepCallback, child_results, claims_table
+from orchestrator.sweep.tasks import (
     CLAIMS,
     FIGURES,
     plot_skill_stage,
@@ -22,7 +23,6 @@ from orchestrator.report_tasks import (
     spearman,
     verdict,
 )
-from orchestrator.sweep import SweepCallback, child_results, claims_table
 
 SIGMA, TERRAIN = "algo.task.sigma", "terrain.kind"
 PRIOR = "algo.task.skill_prior"

@@ -10,10 +10,10 @@ callback starts an MLflow server on 127.0.0.1 in front of that file for the
 sweep's duration and the jobs log through it.
 When the multirun ends, the children's final metrics are gathered into a table
 (JSON and Markdown) and a figure, with the learning curves of the preset's
-`curves` and the paper's result beside ours (`orchestrator.report`), logged to
+`curves` and the paper's result beside ours (`orchestrator.sweep.report`), logged to
 the parent run. A preset's `facet_by` (a second swept key, e.g. the terrain) groups
 them by (compared value, facet); its `figures` and `claims` name a paper's own
-figures and table of statements (`orchestrator.report_tasks`, `report_physicsvae`).
+figures and table of statements (`orchestrator.sweep.tasks`, `orchestrator.sweep.physicsvae`).
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ from typing import Any
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig
 
-from orchestrator import report, report_physicsvae, report_tasks
+from orchestrator.sweep import physicsvae, report, tasks
 
 SWEEP_FILE = "sweep.json"
 SEQUENTIAL_LAUNCHER = "hydra._internal.core_plugins.basic_launcher.BasicLauncher"
@@ -62,10 +62,10 @@ class SweepCallback(Callback):
     spread:     a figure of one per-rollout quantity's mean and spread per point ({"mean", "std", "label",
                 "title"}; PhysicsVAE's Fig. 9), as spread.png.
     claims:     the name of a table of the paper's statements beside our numbers
-                (`orchestrator.report_physicsvae.CLAIMS` or `orchestrator.report_tasks.CLAIMS`).
+                (`orchestrator.sweep.physicsvae.CLAIMS` or `orchestrator.sweep.tasks.CLAIMS`).
     facet_by:   a second swept key (e.g. `terrain.kind`): rows carry it, and the tables and figures group by
                 (compare_by, facet_by); None compares `compare_by` alone (seeds pooled).
-    figures:    names of a paper's own figures (`orchestrator.report_tasks.FIGURES`), each written as <name>.png.
+    figures:    names of a paper's own figures (`orchestrator.sweep.tasks.FIGURES`), each written as <name>.png.
     """
 
     def __init__(
@@ -81,14 +81,12 @@ class SweepCallback(Callback):
         figures: list[str] | None = None,
     ) -> None:
         # Checked here, when the multirun starts, not after its runs.
-        known = {**report_physicsvae.CLAIMS, **report_tasks.CLAIMS}
+        known = {**physicsvae.CLAIMS, **tasks.CLAIMS}
         if claims is not None and claims not in known:
             raise ValueError(f"callbacks.sweep.claims: unknown table {claims!r}; expected one of {sorted(known)}")
-        unknown = [f for f in figures or [] if f not in report_tasks.FIGURES]
+        unknown = [f for f in figures or [] if f not in tasks.FIGURES]
         if unknown:
-            raise ValueError(
-                f"callbacks.sweep.figures: unknown {unknown}; expected some of {sorted(report_tasks.FIGURES)}"
-            )
+            raise ValueError(f"callbacks.sweep.figures: unknown {unknown}; expected some of {sorted(tasks.FIGURES)}")
         self.compare_by = compare_by
         self.metrics = dict(metrics or DEFAULT_METRICS)
         self.curves = dict(curves or {})
@@ -223,13 +221,11 @@ class SweepCallback(Callback):
                 if self.expert_level is not None and sp["mean"] == "eval/time_until_fall_mean":
                     level = (self.expert_level, f"the expert on its demos ({self.expert_level:.2f} s)")
                 label = sp.get("label", sp["mean"])
-                report_physicsvae.plot_spread(
-                    rows, by, sp["mean"], sp["std"], label, spread_png, sp.get("title", ""), level
-                )
+                physicsvae.plot_spread(rows, by, sp["mean"], sp["std"], label, spread_png, sp.get("title", ""), level)
                 self.tracker.log_artifact(str(spread_png))
             for name in self.figures:
                 figure_png = self.sweep_dir / f"{name}.png"
-                report_tasks.FIGURES[name](rows, by, facet, figure_png)
+                tasks.FIGURES[name](rows, by, facet, figure_png)
                 self.tracker.log_artifact(str(figure_png))
             if self.claims:
                 text += "\n## The paper's statements and ours\n\n" + claims_table(self.claims, rows, by, facet)
@@ -264,9 +260,9 @@ def ensure_experiment(store: str, name: str) -> None:
 
 def claims_table(name: str, rows: list[dict[str, Any]], compare_by: str, facet_by: str | None) -> str:
     """The paper's statements beside ours, from whichever registry holds `name` (the task tables read the facet)."""
-    if name in report_tasks.CLAIMS:
-        return report_tasks.CLAIMS[name](rows, compare_by, facet_by)
-    return report_physicsvae.CLAIMS[name](rows, compare_by)
+    if name in tasks.CLAIMS:
+        return tasks.CLAIMS[name](rows, compare_by, facet_by)
+    return physicsvae.CLAIMS[name](rows, compare_by)
 
 
 def child_results(

@@ -17,7 +17,7 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
-from orchestrator.cluster_procs import (
+from orchestrator.cluster.procs import (
     ClusterError,
     free_ports,
     http_json,
@@ -74,7 +74,7 @@ def _ray_node_ports() -> list[str]:
     return [x for name, port in zip(names, free_ports(len(names)), strict=True) for x in (name, str(port))]
 
 
-def _alive_nodes(dashboard: str, token: str) -> list[dict[str, Any]]:
+def alive_nodes(dashboard: str, token: str) -> list[dict[str, Any]]:
     data = http_json(f"{dashboard}/api/v0/nodes?limit=100", token)
     return [n for n in data["data"]["result"]["result"] if n["state"] == "ALIVE"]
 
@@ -97,7 +97,7 @@ def start_ray_head(
     register(record)
 
     def ready() -> bool:
-        heads = [n for n in _alive_nodes(dashboard, token) if n["is_head_node"]]
+        heads = [n for n in alive_nodes(dashboard, token) if n["is_head_node"]]
         http_json(f"{dashboard}/api/jobs/", token)  # the jobs API answers too
         if heads:
             record["node_id"] = heads[0]["node_id"]
@@ -122,7 +122,7 @@ def start_ray_node(
     register(record)
 
     def joined() -> bool:
-        new = [n["node_id"] for n in _alive_nodes(head["dashboard_url"], token) if n["node_id"] not in known]
+        new = [n["node_id"] for n in alive_nodes(head["dashboard_url"], token) if n["node_id"] not in known]
         if new:
             record["node_id"] = new[0]
         return bool(new)

@@ -1,4 +1,4 @@
-"""Clip tools for users: `python -m orchestrator.motion check NAME_OR_PATH [--json]`.
+"""Clip tools for users: `python -m orchestrator.clips check NAME_OR_PATH [--json]`.
 
 `check` loads a clip in any supported format (a bundled DeepMimic name such as
 `humanoid3d_walk` or `walker/turn_left0`, or a .txt/.json, .bvh or .npz path),
@@ -78,7 +78,7 @@ def format_report(r: dict) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m orchestrator.motion", description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m orchestrator.clips", description=__doc__.split("\n\n")[0])
     sub = parser.add_subparsers(dest="command", required=True)
     p_check = sub.add_parser("check", help="validate a clip and print its summary")
     p_check.add_argument("clip", help="bundled clip name or path (.txt/.json, .bvh, .npz)")

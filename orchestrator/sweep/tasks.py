@@ -1,6 +1,6 @@
 """The task sweeps as the papers show them: a figure each, and the paper's statements beside our numbers.
 
-Child runs are task runs (a task policy on a frozen skill model); rows are `sweep.child_results`'s.
+Child runs are task runs (a task policy on a frozen skill model); rows are `callback.child_results`'s.
 
 - `plot_success_style` (PhysicsVAE Sec. 5.5.2, the helper branch's σ): task success against the
   style deviation, a point per (σ, terrain) with error bars = std over seeds, each seed a small dot.
@@ -30,7 +30,7 @@ import numpy as np
 from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 
-from orchestrator.report import group, points, two_standard_errors
+from orchestrator.sweep.report import group, points, two_standard_errors
 
 SUCCESS = "eval/task_success"
 RETURN = "eval/task_return"

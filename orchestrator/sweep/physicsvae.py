@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 from matplotlib.figure import Figure
 
-from orchestrator.report import group
+from orchestrator.sweep.report import group
 
 
 def pooled(members: list[dict[str, Any]], mean_key: str, std_key: str) -> tuple[float, float]:

@@ -1,0 +1,4 @@
+"""The cluster topology on one machine, without Docker (`python -m orchestrator.cluster up|down|status|env`): the
+command line (`__main__`), the cluster's lifecycle and its record (`topology`), each service started and stopped
+(`services`), and the processes under them, each in its own session (`procs`).
+"""

@@ -1,0 +1,77 @@
+"""The topology a lab runs, on one machine, without Docker: `python -m orchestrator.cluster up|down|status|env`.
+
+    python -m orchestrator.cluster up [--state-dir .cluster] [--json]   # or: make cluster-up
+    eval "$(python -m orchestrator.cluster env)"                         # the token and addresses, for clients
+    ray job submit -- python -m orchestrator runtime=ray runtime.address=auto tracking.uri=$MLFLOW_TRACKING_URI
+    python -m orchestrator.cluster down                                  # or: make cluster-down
+
+What each command does: `orchestrator.cluster.topology`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shlex
+import sys
+from pathlib import Path
+
+from orchestrator.cluster.procs import ClusterError
+from orchestrator.cluster.topology import (
+    DEFAULT_STATE_DIR,
+    client_env,
+    down,
+    load_state,
+    print_summary,
+    state_path,
+    status,
+    up,
+)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m orchestrator.cluster", description=__doc__.splitlines()[0])
+    parser.add_argument("command", choices=["up", "down", "status", "env"])
+    parser.add_argument("--state-dir", type=Path, default=Path(DEFAULT_STATE_DIR), help="default: ./.cluster")
+    parser.add_argument("--json", action="store_true", help="machine-readable output")
+    parser.add_argument("--head-cpus", type=int, default=2, help="logical CPUs of the Ray head")
+    parser.add_argument("--node-cpus", type=int, default=4, help="logical CPUs of each other Ray node")
+    parser.add_argument("--nodes", type=int, default=1, help="Ray nodes joining the head")
+    parser.add_argument("--object-store-mb", type=int, default=256, help="each Ray node's object store")
+    parser.add_argument("--timeout", type=float, default=120.0, help="seconds each service has to answer")
+    args = parser.parse_args(argv)
+    state_dir = args.state_dir.resolve()
+    try:
+        if args.command == "up":
+            state_dir.mkdir(parents=True, exist_ok=True)
+            state = up(state_dir, args.head_cpus, args.node_cpus, args.nodes, args.object_store_mb, args.timeout)
+            print_summary(state, args.json)
+        elif args.command == "down":
+            if not down(state_dir):
+                print(f"nothing to stop: no {state_path(state_dir)}")
+        elif args.command == "status":
+            info = status(state_dir)
+            if args.json:
+                print(json.dumps(info, indent=2))
+            else:
+                for name, value in info["services"].items():
+                    print(f"{name:<15} {value}")
+            if "down" in info["services"].values():
+                return 1
+        else:
+            state = load_state(state_dir)
+            if state is None:
+                raise ClusterError(f"no cluster recorded in {state_path(state_dir)}; run `up`")
+            for key, value in client_env(state).items():
+                print(f"export {key}={shlex.quote(value)}")
+    except ClusterError as e:
+        print(f"cluster {args.command}: {e}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print(f"cluster {args.command}: interrupted", file=sys.stderr)
+        return 130
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
