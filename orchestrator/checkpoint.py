@@ -23,7 +23,7 @@ import torch
 RUN_FILE = "run.json"  # in the run directory: {"run_id": <the MLflow run a resume continues>}
 
 _NUMPY = "__numpy__"
-# What every checkpoint the trainer writes holds besides its components' states (orchestrator.loop).
+# What every checkpoint the trainer writes holds besides its components' states (orchestrator.trainer).
 TRAINER_KEYS = ("loop", "method", "workers")
 
 

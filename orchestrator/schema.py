@@ -58,7 +58,7 @@ class CharacterConfig:
 
 @dataclass
 class MotionConfig:
-    # Bundled clip names (`python -m orchestrator.motion list`) or paths to DeepMimic, BVH or NPZ files.
+    # Bundled clip names (`python -m orchestrator.clips list`) or paths to DeepMimic, BVH or NPZ files.
     clips: list[str] = field(default_factory=lambda: list(LOCOMOTION))
     # Add left-right mirrored copies (ControlVAE doubles its data this way).
     mirror: bool = True

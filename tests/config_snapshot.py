@@ -6,7 +6,8 @@
 
 `configs` composes `algo=<name> scale=<scale>` for every file of conf/algo and conf/scale and records the
 validated config (as a dict) and its stage hash, upstream stages' hashes included (composed as a run would,
-without MLflow). `history` runs the default experiment in this process with tracking into a fresh SQLite
+without MLflow); with `--former`, also the hash by the rule before the layout change (the class's module
+path in it), which must equal the stage hash a checkout from before that change records. `history` runs the default experiment in this process with tracking into a fresh SQLite
 store and records every metric's history except those that measure time or the machine (throughput/,
 system/, *_s). Used for the layout change (the configs and histories before and after are compared).
 """
@@ -14,6 +15,7 @@ system/, *_s). Used for the layout change (the configs and histories before and 
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import subprocess
 import sys
@@ -43,13 +45,36 @@ def chain_hash(cfg, config_hash, upstream_config) -> str:
     return config_hash(cfg, above)
 
 
-def configs() -> dict:
+# Where method classes lived before the layout change (the hash then included this path).
+FORMER_TARGETS = {
+    "orchestrator.algos.physicsvae.SimulationLayer": "orchestrator.algos.offline.OfflineWorldModel",
+    "orchestrator.algos.physicsvae.PhysicsVAE": "orchestrator.algos.offline.PhysicsVAE",
+}
+
+
+def former_hash(cfg, upstream: dict[str, str] | None = None) -> str:
+    """The stage hash as it was computed before the layout change: `algo._target_` (its former module path) in it."""
+    from orchestrator.stages import NOT_RESULT, RUNTIME_RESULT
+
+    d = asdict(cfg)
+    for key in NOT_RESULT:
+        d.pop(key, None)
+    d["runtime"] = {k: d["runtime"][k] for k in RUNTIME_RESULT}
+    d["algo"] = {k: v for k, v in d["algo"].items() if v is not None}
+    d["algo"]["_target_"] = FORMER_TARGETS.get(d["algo"]["_target_"], d["algo"]["_target_"])
+    d["algo"]["needs"] = dict(sorted((upstream or {}).items()))
+    return hashlib.sha256(json.dumps(d, sort_keys=True, default=str).encode()).hexdigest()[:20]
+
+
+def configs(former: bool = False) -> dict:
     compose, validate, config_hash, upstream_config = _api()
     out = {}
     for algo in sorted(p.stem for p in (CONF / "algo").glob("*.yaml")):
         for scale in sorted(p.stem for p in (CONF / "scale").glob("*.yaml")):
             cfg = validate(compose([f"algo={algo}", f"scale={scale}", "run_dir=outputs/snapshot"]))
             out[f"{algo}/{scale}"] = {"config": asdict(cfg), "stage_hash": chain_hash(cfg, config_hash, upstream_config)}
+            if former:
+                out[f"{algo}/{scale}"]["former_stage_hash"] = chain_hash(cfg, former_hash, upstream_config)
     return out
 
 
@@ -103,6 +128,7 @@ def main() -> None:
     p.add_argument("files", nargs="*", help="compare: two snapshots; history: Hydra overrides")
     p.add_argument("--out")
     p.add_argument("--keep-targets", action="store_true", help="compare: _target_ module paths too")
+    p.add_argument("--former", action="store_true", help="configs: also each stage hash as the former rule made it")
     args = p.parse_intermixed_args()
     if args.what == "compare":
         a, b = (json.loads(Path(f).read_text()) for f in args.files)
@@ -112,7 +138,7 @@ def main() -> None:
         print("\n".join(diff) if diff else "identical")
         print(f"{len(diff)} differences")
         sys.exit(1 if diff else 0)
-    data = configs() if args.what == "configs" else history(args.files)
+    data = configs(args.former) if args.what == "configs" else history(args.files)
     text = json.dumps(data, indent=1, sort_keys=True, default=str)
     Path(args.out).write_text(text) if args.out else print(text)
 

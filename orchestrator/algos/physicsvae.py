@@ -17,14 +17,14 @@ capped at `eval.fall_max_seconds`), with the tracking error of the posterior.
 from __future__ import annotations
 
 from orchestrator.algos.base import Component, Method
-from orchestrator.components.physicsvae import OfflineWorldModelActor, PhysicsVAEActor
+from orchestrator.components.physicsvae import PhysicsVAEActor, SimulationLayerActor
 from orchestrator.evaluation.protocols import evaluate_controller
 from orchestrator.upstream import load_manifest
 from workers.policies import VAEPolicy
 
 
 class Offline(Method):
-    """What both offline stages share: the demos, an epoch per iteration, held-out metrics."""
+    """What both offline stages (the simulation layer and the VAE) share: the demos, an epoch per iteration, held-out metrics."""
 
     uses_workers = False
     learner_key = ""
@@ -62,7 +62,7 @@ class Offline(Method):
         return {"loss": f"{metrics.get(f'{self.learner_key}/loss', float('nan')):.3g}"}
 
 
-class OfflineWorldModel(Offline):
+class SimulationLayer(Offline):
     sections = ("world_model", "offline")
     needs = ("demos",)
     learner_key = "world_model"
@@ -70,7 +70,7 @@ class OfflineWorldModel(Offline):
     def components(self) -> list[Component]:
         b, a = self.character.num_bodies, self.character.num_actions
         args = (self.cfg, self.upstream["demos"], b, a)
-        return [Component("world_model", OfflineWorldModelActor, args, actor="learner-world_model")]
+        return [Component("world_model", SimulationLayerActor, args, actor="learner-world_model")]
 
     def batch_size(self) -> int:
         return self.cfg.algo.world_model.batch_size

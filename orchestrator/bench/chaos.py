@@ -240,7 +240,7 @@ def run(
         raise
     injector = Injector(minutes, kill_every, outage, server, (backend, artifacts), train_dir, say)
     reloads = Reloads()
-    logging.getLogger("orchestrator.loop").addHandler(reloads)
+    logging.getLogger("orchestrator.trainer").addHandler(reloads)
     injector.start()
     summary: dict[str, float] = {}
     error = None
@@ -255,7 +255,7 @@ def run(
         wall = time.monotonic() - t0
         injector.done.set()
         injector.join_all(timeout_s=180)
-        logging.getLogger("orchestrator.loop").removeHandler(reloads)
+        logging.getLogger("orchestrator.trainer").removeHandler(reloads)
     server, faults = injector.server, injector.faults
     try:
         if not server.running():  # the run ended within the outage

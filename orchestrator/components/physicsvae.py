@@ -87,7 +87,7 @@ class OfflineActor(LearnerActor):
         self.rng.bit_generator.state = state["rng"]
 
 
-class OfflineWorldModelActor(OfflineActor):
+class SimulationLayerActor(OfflineActor):
     """PhysicsVAE's simulation layer: the world model on T_w-step windows of the expert's (state, action)."""
 
     def __init__(self, cfg: Config, demos: DemoSet | Upstream, num_bodies: int, action_dim: int):

@@ -3,7 +3,7 @@
 `controller_videos` and `policy_videos` record what to show (`workers.render`, a second or two of
 simulation) and return a `RenderJob`: a child process renders and encodes the MP4s (imageio's ffmpeg
 writer: H.264, yuv420p, playable in the MLflow UI) while the evaluation's other protocols run, and
-`RenderJob.log` waits for them and logs them (`videos/<evaluation name>/` in `orchestrator.evaluate`).
+`RenderJob.log` waits for them and logs them (`videos/<evaluation name>/` in `orchestrator.evaluation.protocols`).
 
 The GL backend. MuJoCo picks its OpenGL platform from MUJOCO_GL once, when it is first imported, and by
 then this process has imported it for the simulator, with whatever MUJOCO_GL said (usually nothing,

@@ -27,15 +27,12 @@ from hydra.experimental.callback import Callback
 from omegaconf import DictConfig
 
 from orchestrator.sweep import physicsvae, report, tasks
+from orchestrator.tracking.uri import store_uri
 
 SWEEP_FILE = "sweep.json"
 SEQUENTIAL_LAUNCHER = "hydra._internal.core_plugins.basic_launcher.BasicLauncher"
 # ControlVAE's and PhysicsVAE's measures; a preset names its own (callbacks.sweep.metrics).
 DEFAULT_METRICS = {"eval/time_until_fall_mean": "time until fall (s)", "eval/tracking_error_mean": "tracking error (m)"}
-
-
-def store_uri(sweep_dir: Path, uri: str | None) -> str:
-    return uri or f"sqlite:///{(sweep_dir / 'mlflow.db').resolve()}"
 
 
 def runs_in_parallel(config: DictConfig) -> bool:
@@ -98,7 +95,7 @@ class SweepCallback(Callback):
         self.figures = list(figures or [])
         self.stages_table = ""
         self.expert_level: float | None = None  # the expert's own time until fall on its demos
-        self.tracker = None
+        self.logger = None
         self.sweep_dir: Path | None = None
         self.server = None
 
@@ -107,13 +104,13 @@ class SweepCallback(Callback):
         return {**self.__dict__, "tracker": None, "server": None}
 
     def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
-        from orchestrator.tracking.mlflow import MlflowTracker
+        from orchestrator.tracking.mlflow import MlflowLogger
 
         if not config.tracking.enabled:
             return
         self.sweep_dir = Path(config.hydra.sweep.dir)
         self.sweep_dir.mkdir(parents=True, exist_ok=True)
-        store = store_uri(self.sweep_dir, config.tracking.uri)
+        store = store_uri(config.tracking.uri, self.sweep_dir)
         uri = store
         experiment = config.tracking.experiment or config.preset
         if config.tracking.uri is None and runs_in_parallel(config):
@@ -129,18 +126,18 @@ class SweepCallback(Callback):
             )
             uri = self.server.uri
             print(f"sweep: parallel jobs log through the tracking server at {uri}")
-        self.tracker = MlflowTracker(
+        self.logger = MlflowLogger(
             uri=uri,
             experiment=experiment,
             run_name=f"{config.preset} sweep",
             tags={"preset": config.preset, "role": "sweep", "host": socket.gethostname()},
             run_dir=self.sweep_dir,
         )
-        self.tracker.set_tags({"sweep_id": self.tracker.run_id})
+        self.logger.set_tags({"sweep_id": self.logger.run_id})
         params = dict(config.hydra.sweeper.get("params") or {})
-        self.tracker.log_params({f"sweep.{k}": str(v) for k, v in params.items()})
+        self.logger.log_params({f"sweep.{k}": str(v) for k, v in params.items()})
         # `uri` is what the jobs log to; `store` is where the runs stay once the sweep is over.
-        info = {"parent_run_id": self.tracker.run_id, "uri": uri, "store": store, "experiment": experiment}
+        info = {"parent_run_id": self.logger.run_id, "uri": uri, "store": store, "experiment": experiment}
         (self.sweep_dir / SWEEP_FILE).write_text(json.dumps(info))
         self.run_stages(config, uri, experiment)
 
@@ -150,21 +147,22 @@ class SweepCallback(Callback):
         from omegaconf import OmegaConf
 
         from orchestrator import stages
-        from orchestrator.schema import validate
+        from orchestrator.build import train_stage
+        from orchestrator.compose import validate
 
         plain = OmegaConf.to_container(config, resolve=False)
         plain.pop("hydra", None)
         plain["run_dir"] = str(self.sweep_dir)
         try:
             cfg = validate(plain)
-            upstream = stages.resolve(cfg, uri, self.sweep_dir, experiment) if cfg.algo.needs else {}
+            upstream = stages.resolve(cfg, uri, self.sweep_dir, experiment, train_stage) if cfg.algo.needs else {}
         except Exception:
-            self.tracker.close("FAILED")
-            self.tracker = None
+            self.logger.close("FAILED")
+            self.logger = None
             raise
         if not upstream:
             return
-        self.tracker.set_tags(stages.lineage_tags(upstream))
+        self.logger.set_tags(stages.lineage_tags(upstream))
         rows = ["| role | stage | run | stage hash | reused |", "| --- | --- | --- | --- | --- |"]
         rows += [f"| {r} | {u.name} | {u.run_id} | {u.stage_hash} | {u.reused} |" for r, u in upstream.items()]
         rows += [f"| {r}.{k} | | {v} | | |" for r, u in upstream.items() for k, v in u.lineage.items()]
@@ -174,7 +172,7 @@ class SweepCallback(Callback):
         if quality:
             rows += ["", "The expert, on the demos it made (noisy rollouts; `own/` is its own evaluation):", *quality]
         self.stages_table = "\n".join(rows) + "\n"
-        self.tracker.log_dict(
+        self.logger.log_dict(
             {
                 r: {
                     "name": u.name,
@@ -189,29 +187,29 @@ class SweepCallback(Callback):
         )
 
     def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
-        if self.tracker is None:
+        if self.logger is None:
             return
         from orchestrator.tracking.query import child_runs, metric_histories
 
-        self.tracker.flush()
-        children = child_runs(self.tracker.uri, self.tracker.run_id)
+        self.logger.flush()
+        children = child_runs(self.logger.uri, self.logger.run_id)
         wanted = list(self.metrics) + [self.spread[k] for k in ("mean", "std") if k in self.spread]
         rows = child_results(children, self.compare_by, list(dict.fromkeys(wanted)), self.facet_by)
         if rows:
             by, facet = self.compare_by, self.facet_by
-            self.tracker.log_dict({"rows": rows}, "comparison.json")
+            self.logger.log_dict({"rows": rows}, "comparison.json")
             text = f"# {config.preset}\n\n" + report.final_table(rows, by, self.metrics, facet)
             png = self.sweep_dir / "comparison.png"
             report.plot_final(rows, by, self.metrics, png, self.reference, facet)
-            self.tracker.log_artifact(str(png))
+            self.logger.log_artifact(str(png))
             if self.curves:
-                histories = metric_histories(self.tracker.uri, [r["run_id"] for r in rows], list(self.curves))
+                histories = metric_histories(self.logger.uri, [r["run_id"] for r in rows], list(self.curves))
                 # A curve no run logged (e.g. the model-based task loss under the PPO trainer) gets no panel.
                 curves = {k: v for k, v in self.curves.items() if any(h.get(k) for h in histories.values())}
                 if curves:
                     curves_png = self.sweep_dir / "curves.png"
                     report.plot_curves(rows, histories, by, curves, curves_png, facet)
-                    self.tracker.log_artifact(str(curves_png))
+                    self.logger.log_artifact(str(curves_png))
                     key, label = next(iter(curves.items()))
                     text += "\n" + report.curve_table(rows, histories, by, key, label, facet)
             if self.spread:
@@ -222,11 +220,11 @@ class SweepCallback(Callback):
                     level = (self.expert_level, f"the expert on its demos ({self.expert_level:.2f} s)")
                 label = sp.get("label", sp["mean"])
                 physicsvae.plot_spread(rows, by, sp["mean"], sp["std"], label, spread_png, sp.get("title", ""), level)
-                self.tracker.log_artifact(str(spread_png))
+                self.logger.log_artifact(str(spread_png))
             for name in self.figures:
                 figure_png = self.sweep_dir / f"{name}.png"
                 tasks.FIGURES[name](rows, by, facet, figure_png)
-                self.tracker.log_artifact(str(figure_png))
+                self.logger.log_artifact(str(figure_png))
             if self.claims:
                 text += "\n## The paper's statements and ours\n\n" + claims_table(self.claims, rows, by, facet)
             if self.stages_table:
@@ -235,17 +233,17 @@ class SweepCallback(Callback):
                 text += "\n## The paper\n\n" + "\n".join(f"- {line}" for line in self.paper) + "\n"
             table = self.sweep_dir / "comparison.md"
             table.write_text(text)
-            self.tracker.log_artifact(str(table))
-            print(f"sweep {self.tracker.run_id}: {len(rows)} runs\n" + text)
-        self.tracker.close("FINISHED")
-        store = store_uri(self.sweep_dir, config.tracking.uri)
+            self.logger.log_artifact(str(table))
+            print(f"sweep {self.logger.run_id}: {len(rows)} runs\n" + text)
+        self.logger.close("FINISHED")
+        store = store_uri(config.tracking.uri, self.sweep_dir)
         look = f"mlflow ui --backend-store-uri {store} --host 127.0.0.1"
         if self.server is not None:
             self.server.stop()
             self.server = None
             look += f" --artifacts-destination {(self.sweep_dir / 'mlartifacts').resolve()}"
         where = f"MLflow: {store}" if store.startswith("http") else f"MLflow UI: {look}"
-        print(f"{where}  (sweep {self.tracker.run_id})")
+        print(f"{where}  (sweep {self.logger.run_id})")
 
 
 def ensure_experiment(store: str, name: str) -> None:

@@ -4,7 +4,7 @@ SQLite alone locks under parallel writers, so a parallel sweep points every job 
 that owns the database: `start_local_server(...)` returns once `/health` answers.
 
     with start_local_server("sqlite:///runs/mlflow.db", Path("runs/mlartifacts")) as server:
-        tracker = MlflowTracker(server.uri, "ablation_alpha", run_dir=...)
+        tracker = MlflowLogger(server.uri, "ablation_alpha", run_dir=...)
 """
 
 from __future__ import annotations

@@ -10,8 +10,8 @@ from pathlib import Path
 
 from mlflow.tracking import MlflowClient
 
-from orchestrator import stages
-from orchestrator.schema import Config, validate
+from orchestrator.compose import compose, validate
+from orchestrator.schema import Config
 
 
 def smoke_config(run_dir: Path, *overrides: str) -> Config:
@@ -22,7 +22,7 @@ def smoke_config(run_dir: Path, *overrides: str) -> Config:
     base += [] if any(o.startswith("runtime=") for o in overrides) else ["runtime=local"]
     # Videos cost seconds per evaluation in software GL: only the tests that ask for them render them.
     base += [] if any(o.startswith("eval.video=") for o in overrides) else ["eval.video=false"]
-    return validate(stages.compose([*base, *overrides]))
+    return validate(compose([*base, *overrides]))
 
 
 def runs_of(uri: str, algo: str) -> list:

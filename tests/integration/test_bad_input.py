@@ -26,7 +26,8 @@ from omegaconf import open_dict
 from orchestrator import preflight
 from orchestrator.__main__ import main
 from orchestrator.clips import main as motion_main
-from orchestrator.schema import ConfigError, register, validate
+from orchestrator.compose import register, validate
+from orchestrator.schema import ConfigError
 
 ROOT = Path(__file__).resolve().parents[2]
 CONF = ROOT / "conf"

@@ -6,12 +6,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from orchestrator.components import load_world
-from orchestrator.loop import Trainer
+from orchestrator.compose import compose, validate
 from orchestrator.runtime.local import LocalRuntime
-from orchestrator.schema import validate
-from orchestrator.stages import compose
-from orchestrator.tracking.base import NoOpTracker
+from orchestrator.tracking.base import NoOpLogger
+from orchestrator.trainer import Trainer
+from orchestrator.world import load_character_and_library
 
 ITERATIONS = 12
 
@@ -29,8 +28,8 @@ def trained(tmp_path_factory):
         "algo.loop.balance_every=4",
         "algo.loop.switch_rate=1.0",
     ]))  # fmt: skip
-    character, library = load_world(cfg)
-    trainer = Trainer(cfg, LocalRuntime(), NoOpTracker(), character)
+    character, library = load_character_and_library(cfg)
+    trainer = Trainer(cfg, LocalRuntime(), NoOpLogger(), character)
     trainer.method.start(trainer)
     history = [trainer.step() for _ in range(ITERATIONS)]
     trainer.method.finish(trainer)
@@ -61,7 +60,7 @@ def test_balancing_refreshes_the_workers_start_weights(trained):
         shares = [m[f"balance/start_share/{name}"] for name in library.names]
         assert sum(shares) == pytest.approx(1.0)
     # Every rollout worker draws its starts by the new weights, from its next collect on.
-    trainer.rt.get(trainer.collect(1, cfg.algo.loop.staleness))
+    trainer.runtime.get(trainer.collect(1, cfg.algo.loop.staleness))
     for actor in trainer.workers:
         np.testing.assert_allclose(actor.worker.library._frame_weights, values.weights())
     # The learning curve of Eq. 20 and the switches are reported every iteration.

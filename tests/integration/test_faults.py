@@ -20,11 +20,12 @@ from mlflow.tracking import MlflowClient
 
 from orchestrator.bench.chaos import plan
 from orchestrator.build import build_runtime
-from orchestrator.components import RolloutActor, load_world
-from orchestrator.loop import Trainer
-from orchestrator.tracking.base import NoOpTracker
-from orchestrator.tracking.mlflow import MlflowTracker
+from orchestrator.components.rollout import RolloutActor
+from orchestrator.tracking.base import NoOpLogger
+from orchestrator.tracking.mlflow import MlflowLogger
 from orchestrator.tracking.server import free_port, start_local_server
+from orchestrator.trainer import Trainer
+from orchestrator.world import load_character_and_library
 from workers.learners import base as learner_base
 from workers.learners.vae import VAELearner
 
@@ -50,11 +51,11 @@ def wait_until(condition, timeout_s: float) -> bool:
 @pytest.mark.slow
 def test_a_loss_driven_to_nan_skips_updates_and_no_nonfinite_weight_reaches_a_worker(smoke, monkeypatch):
     cfg = smoke("runtime=local", "algo.loop.checkpoint_every=0", "algo.loop.balance_every=0")
-    character, _ = load_world(cfg)
+    character, _ = load_character_and_library(cfg)
     received: list = []  # every weights object a rollout worker was given
     set_weights = RolloutActor.set_weights
     monkeypatch.setattr(RolloutActor, "set_weights", lambda self, w: (received.append(w), set_weights(self, w))[1])
-    trainer = Trainer(cfg, build_runtime(cfg), NoOpTracker(), character)
+    trainer = Trainer(cfg, build_runtime(cfg), NoOpLogger(), character)
     trainer.method.start(trainer)
     good = [trainer.step() for _ in range(3)]
     assert good[-1]["vae/version"] > 0 and good[-1]["vae/skipped_updates"] == 0
@@ -100,7 +101,7 @@ def test_metrics_logged_while_the_server_was_down_reach_it_without_further_loggi
     store, artifacts = f"sqlite:///{tmp_path / 'server.db'}", tmp_path / "artifacts"
     server = start_local_server(store, artifacts, port=port)
     try:
-        tracker = MlflowTracker(server.uri, "faults", run_dir=tmp_path / "run", retry_interval_s=0.5)
+        tracker = MlflowLogger(server.uri, "faults", run_dir=tmp_path / "run", retry_interval_s=0.5)
         for step in range(3):
             tracker.log_metrics({"loss": float(step)}, step=step)
         assert tracker.pending() == 0

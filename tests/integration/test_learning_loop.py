@@ -17,8 +17,8 @@ from hydra import compose, initialize_config_dir
 from mlflow.tracking import MlflowClient
 
 from orchestrator.build import run
-from orchestrator.components import load_world, sim_config
-from orchestrator.schema import validate
+from orchestrator.compose import validate
+from orchestrator.world import evaluation_sim_config, load_character_and_library
 from workers.evaluation import tracking_error
 from workers.learners.vae import build_controller
 
@@ -40,11 +40,11 @@ OVERRIDES = [
 def test_default_loop_improves_tracking_in_the_simulator(tmp_path):
     with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
         cfg = validate(compose("config", overrides=[f"run_dir={tmp_path}", *OVERRIDES]))
-    character, library = load_world(cfg)
+    character, library = load_character_and_library(cfg)
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(0)
         untrained = build_controller(character.num_bodies, character.num_actions, cfg.algo.vae)
-    before = tracking_error(untrained, library, character, 1.0, sim_config(cfg), seed=cfg.seed)["mean"]
+    before = tracking_error(untrained, library, character, 1.0, evaluation_sim_config(cfg), seed=cfg.seed)["mean"]
 
     summary = run(cfg)
     after = summary["eval/tracking_error_mean"]

@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 
 from orchestrator.build import build_runtime
-from orchestrator.components import load_world
-from orchestrator.loop import Trainer
-from orchestrator.tracking.base import NoOpTracker
+from orchestrator.tracking.base import NoOpLogger
+from orchestrator.trainer import Trainer
+from orchestrator.world import load_character_and_library
 
 pytestmark = pytest.mark.slow
 
@@ -17,9 +17,9 @@ pytestmark = pytest.mark.slow
 def laptop_trainer(smoke, *overrides: str) -> tuple[Trainer, object]:
     """A method at the laptop scale's sizes on the walk clip, 2 workers x 16 envs x 64 steps per iteration."""
     cfg = smoke("scale=laptop", "runtime.envs_per_worker=16", "algo.loop.collect_steps=64", *overrides)
-    character, _ = load_world(cfg)
+    character, _ = load_character_and_library(cfg)
     rt = build_runtime(cfg)
-    trainer = Trainer(cfg, rt, NoOpTracker(), character)
+    trainer = Trainer(cfg, rt, NoOpLogger(), character)
     trainer.method.start(trainer)
     return trainer, rt
 

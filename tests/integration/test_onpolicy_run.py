@@ -9,9 +9,9 @@ import numpy as np
 from mlflow.tracking import MlflowClient
 
 from orchestrator.build import build_runtime, run
-from orchestrator.components import load_world
-from orchestrator.loop import Trainer
-from orchestrator.tracking.base import NoOpTracker
+from orchestrator.tracking.base import NoOpLogger
+from orchestrator.trainer import Trainer
+from orchestrator.world import load_character_and_library
 
 
 def test_amp_smoke_run_leaves_a_complete_mlflow_run(smoke):
@@ -48,9 +48,9 @@ def test_overlap_trains_on_the_batch_collected_one_iteration_earlier(smoke):
     lags = {}
     for overlap in (False, True):
         cfg = smoke("algo=amp", f"algo.loop.overlap={str(overlap).lower()}", "tracking=off", name=str(overlap))
-        character, _ = load_world(cfg)
+        character, _ = load_character_and_library(cfg)
         rt = build_runtime(cfg)
-        trainer = Trainer(cfg, rt, NoOpTracker(), character)
+        trainer = Trainer(cfg, rt, NoOpLogger(), character)
         trainer.method.start(trainer)
         lags[overlap] = [trainer.step()["ppo/policy_lag"] for _ in range(3)]
         trainer.method.finish(trainer)

@@ -5,14 +5,14 @@ from __future__ import annotations
 import pytest
 
 from orchestrator.build import build_runtime
-from orchestrator.components import load_world
-from orchestrator.loop import Trainer
-from orchestrator.tracking.base import NoOpTracker
+from orchestrator.tracking.base import NoOpLogger
+from orchestrator.trainer import Trainer
+from orchestrator.world import load_character_and_library
 
 pytestmark = [pytest.mark.ray, pytest.mark.slow]
 
 
-class Recorder(NoOpTracker):
+class Recorder(NoOpLogger):
     def __init__(self):
         self.metrics: list[tuple[int, dict[str, float]]] = []
 
@@ -24,7 +24,7 @@ def test_ray_run_matches_local_and_survives_a_killed_worker(smoke):
     import ray
 
     cfg = smoke("runtime=ray", "runtime.rollout_workers=2", "algo.loop.iterations=10", "algo.loop.checkpoint_every=0")
-    character, _ = load_world(cfg)
+    character, _ = load_character_and_library(cfg)
     rt = build_runtime(cfg)
     tracker = Recorder()
     try:
@@ -43,7 +43,7 @@ def test_ray_run_matches_local_and_survives_a_killed_worker(smoke):
     # The same three iterations in one process give the same numbers: the actors see the same calls in order.
     local_cfg = smoke("runtime=local", "runtime.rollout_workers=2", "algo.loop.checkpoint_every=0", name="local")
     local_rt = build_runtime(local_cfg)
-    local = Trainer(local_cfg, local_rt, NoOpTracker(), character)
+    local = Trainer(local_cfg, local_rt, NoOpLogger(), character)
     local.method.start(local)
     expected = [local.step() for _ in range(3)]
     for key in ("world_model/loss", "vae/rec", "replay/size"):
@@ -52,7 +52,7 @@ def test_ray_run_matches_local_and_survives_a_killed_worker(smoke):
 
 def test_a_killed_learner_and_replay_come_back_from_the_last_checkpoint(smoke):
     cfg = smoke("runtime=ray", "runtime.rollout_workers=1", "algo.loop.checkpoint_every=0")
-    character, _ = load_world(cfg)
+    character, _ = load_character_and_library(cfg)
     rt = build_runtime(cfg)
     try:
         trainer = Trainer(cfg, rt, Recorder(), character)
@@ -82,7 +82,7 @@ def test_amp_learners_run_as_named_actors_and_come_back_from_the_last_checkpoint
     import ray
 
     cfg = smoke("algo=amp", "runtime=ray", "runtime.rollout_workers=1", "algo.loop.checkpoint_every=0")
-    character, _ = load_world(cfg)
+    character, _ = load_character_and_library(cfg)
     rt = build_runtime(cfg)
     try:
         trainer = Trainer(cfg, rt, Recorder(), character)

@@ -20,9 +20,9 @@ from mlflow.tracking import MlflowClient
 from stage_runs import runs_of, smoke_config
 
 from orchestrator import stages
-from orchestrator.algos.demos import load_demos
-from orchestrator.build import run
-from orchestrator.components_offline import OfflineWorldModelActor, PhysicsVAEActor
+from orchestrator.build import run, train_stage
+from orchestrator.components.physicsvae import PhysicsVAEActor, SimulationLayerActor
+from orchestrator.upstream import find_finished, load_demos
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -53,11 +53,11 @@ def test_the_pipeline_ran_each_stage_once_and_linked_them(pipeline):
 def test_an_identical_stage_is_reused_and_a_changed_alpha_is_not(pipeline):
     cfg, uri, root = pipeline["cfg"], pipeline["uri"], pipeline["root"]
     messages: list[str] = []
-    same = stages.ensure("pv", "physicsvae", cfg, uri, root / "again", "default", messages.append)
+    same = stages.ensure("pv", "physicsvae", cfg, uri, root / "again", "default", train_stage, messages.append)
     assert same.reused and same.run_id == runs_of(uri, "physicsvae")[0].info.run_id
     assert "vae" in same.checkpoint()  # its artifacts are found and load
     assert len(runs_of(uri, "physicsvae")) == 1
-    changed = stages.ensure("pv", "physicsvae algo.vae.alpha=0.003", cfg, uri, root / "alpha", "default", print)
+    changed = stages.ensure("pv", "physicsvae algo.vae.alpha=0.003", cfg, uri, root / "alpha", "default", train_stage, print)
     assert not changed.reused and changed.stage_hash != same.stage_hash
     assert len(runs_of(uri, "physicsvae")) == 2
     assert len(runs_of(uri, "tracker")) == 1 and len(runs_of(uri, "world_model")) == 1  # upstream reused
@@ -129,12 +129,12 @@ def test_physicsvae_alpha_pulls_the_simulated_next_states_toward_the_demos(pipel
     windows' error and raised the held-out one (overfitting); with forty (about 1,000) it lowers both."""
     cfg, uri, root = pipeline["cfg"], pipeline["uri"], pipeline["root"]
     spec = "demos algo.demos.rollouts_per_clip=40 algo.demos.seconds=4"
-    demos, _ = load_demos(stages.ensure("demos", spec, cfg, uri, root / "d40", "default", print))
+    demos, _ = load_demos(stages.ensure("demos", spec, cfg, uri, root / "d40", "default", train_stage, print))
     offline = dataclasses.replace(cfg.algo.offline, holdout_rollouts=8)
     wm_cfg = smoke_config(root / "unused", "algo=world_model")
     wm_cfg = dataclasses.replace(wm_cfg, algo=dataclasses.replace(wm_cfg.algo, offline=offline))
     torch.manual_seed(0)
-    layer = OfflineWorldModelActor(wm_cfg, demos, 15, 28)
+    layer = SimulationLayerActor(wm_cfg, demos, 15, 28)
     for _ in range(20):
         layer.train_epoch()
     results = {}
@@ -220,16 +220,16 @@ def test_only_a_finished_run_is_reused(pipeline):
         r = client.create_run(experiment, tags={"stage_hash": "h-test", "algo": "tracker"})
         client.set_terminated(r.info.run_id, status)
     client.create_run(experiment, tags={"stage_hash": "h-test", "algo": "tracker"})  # still RUNNING
-    assert stages.find_finished(client, "h-test") is None
+    assert find_finished(client, "h-test") is None
     done = client.create_run(experiment, tags={"stage_hash": "h-test", "algo": "tracker"})
     client.set_terminated(done.info.run_id, "FINISHED")
-    assert stages.find_finished(client, "h-test") == done.info.run_id
+    assert find_finished(client, "h-test") == done.info.run_id
 
 
 def test_a_controlvae_posterior_can_be_the_expert(pipeline):
     """The second expert option: demos from a ControlVAE run's posterior (z = μ_q), by `algo.needs.expert`."""
     cfg, uri, root = pipeline["cfg"], pipeline["uri"], pipeline["root"]
-    up = stages.ensure("demos", "demos algo.needs.expert=controlvae", cfg, uri, root / "cv", "default", print)
+    up = stages.ensure("demos", "demos algo.needs.expert=controlvae", cfg, uri, root / "cv", "default", train_stage, print)
     demos, manifest = load_demos(up)
     assert manifest["expert_algo"] == "controlvae" and demos.num_episodes == 2
     assert np.isfinite(demos.actions).all() and manifest["expert"]["tracking_error_mean"] > 0

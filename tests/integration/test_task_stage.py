@@ -13,10 +13,10 @@ import torch
 from stage_runs import runs_of
 
 from orchestrator import stages
-from orchestrator.build import run
-from orchestrator.components_task import skill_model
+from orchestrator.build import run, train_stage
+from orchestrator.components.task import skill_model
 from orchestrator.schema import Config
-from orchestrator.stages import StageError
+from orchestrator.upstream import StageError
 
 ROOT = Path(__file__).resolve().parents[2]
 pytestmark = pytest.mark.slow  # a skill stage and three task runs: ~90 s
@@ -55,7 +55,7 @@ def test_the_decoder_the_task_used_is_the_skill_stages_last_checkpoint(task_run)
     """The task run's checkpoint holds only the task policy; the skill it read is bit-identical to the stage's."""
     uri, root = task_run["uri"], task_run["root"]
     (skill,) = runs_of(uri, "controlvae")
-    up = stages.ensure("skill", f"run:{skill.info.run_id}", task_run["cfg"], uri, root / "again", "default")
+    up = stages.ensure("skill", f"run:{skill.info.run_id}", task_run["cfg"], uri, root / "again", "default", train_stage)
     payload = skill_model(up, world_model=True)
     stage_state = up.checkpoint()["vae"]["learner"]["module"]
     assert all(torch.equal(payload["module"][k], stage_state[k]) for k in stage_state)

@@ -9,7 +9,7 @@ import time
 import pytest
 from mlflow.tracking import MlflowClient
 
-from orchestrator.tracking.mlflow import SPOOL_FILE, MlflowTracker
+from orchestrator.tracking.mlflow import SPOOL_FILE, MlflowLogger
 from orchestrator.tracking.server import ServerStartError, free_port, start_local_server
 
 pytestmark = pytest.mark.slow  # each server takes a few seconds to start
@@ -22,7 +22,7 @@ def test_spooled_records_reach_a_server_started_later(tmp_path):
     start = time.perf_counter()
     tags = {"sweep_id": "s1"}
     # A long retry interval: after the forced flush succeeds, nothing may wait for it to pass.
-    tracker = MlflowTracker(uri, "ablation_alpha", "alpha=3e-4", tags=tags, run_dir=run_dir, retry_interval_s=60)
+    tracker = MlflowLogger(uri, "ablation_alpha", "alpha=3e-4", tags=tags, run_dir=run_dir, retry_interval_s=60)
     tracker.log_params({"algo.alpha": "0.0003"})
     for step in range(0, 5000, 1000):
         tracker.log_metrics({"vae/loss": step / 1000, "throughput/sps": 100.0}, step=step)
@@ -52,10 +52,10 @@ def test_spooled_records_reach_a_server_started_later(tmp_path):
 
 def test_parallel_trackers_share_one_server(tmp_path):
     with start_local_server(f"sqlite:///{tmp_path / 'server.db'}", tmp_path / "artifacts") as server:
-        parent = MlflowTracker(server.uri, "ablation_gp", run_name="sweep", run_dir=tmp_path / "parent")
+        parent = MlflowLogger(server.uri, "ablation_gp", run_name="sweep", run_dir=tmp_path / "parent")
 
         def child(i: int) -> None:
-            tracker = MlflowTracker(
+            tracker = MlflowLogger(
                 server.uri, "ablation_gp", run_name=f"w_gp={i}", parent_run_id=parent.run_id, run_dir=tmp_path / f"c{i}"
             )
             for step in range(20):

@@ -29,7 +29,7 @@ from samples import BVH_DIR, FETCH
 from test_bvh import assert_same_poses, body_globals, write_bvh
 
 from orchestrator import clips as motion_cli
-from orchestrator.components import load_world
+from orchestrator.world import load_character_and_library
 from workers.motion.clip import normalize_quats, process
 from workers.motion.errors import ClipError
 from workers.motion.formats import bvh, load_raw
@@ -229,11 +229,11 @@ def test_library_and_load_world_pass_the_joint_map_and_key_the_cache_on_it(chara
         character=SimpleNamespace(self_collision=False, xml=None, control_hz=30),
         motion=SimpleNamespace(clips=[str(renamed)], mirror=False, cache_dir=str(cache), joint_map=knees),
     )
-    _, world = load_world(cfg)
+    _, world = load_character_and_library(cfg)
     np.testing.assert_array_equal(world.clips[0].qpos, lib.clips[0].qpos)
     cfg.motion.joint_map = {}
     with pytest.raises(ClipError, match="right_knee"):
-        load_world(cfg)
+        load_character_and_library(cfg)
 
 
 # ----------------------------------------------------------------------------

@@ -7,8 +7,9 @@ from pathlib import Path
 import pytest
 from hydra import compose, initialize_config_dir
 
-from orchestrator.algos import method_class
-from orchestrator.schema import SECTIONS, ConfigError, register, validate
+from orchestrator.algos.base import method_class
+from orchestrator.compose import register, validate
+from orchestrator.schema import SECTIONS, ConfigError
 
 CONF = Path(__file__).resolve().parents[2] / "conf"
 GROUPS = ["character", "motion", "algo", "runtime", "tracking", "scale"]
@@ -96,7 +97,7 @@ def test_ablation_gp_names_its_loss_and_penalty_placement():
         # A method given a component it lacks.
         ("algo.ppo.clip=0.1", r"algo.ppo.clip: the controlvae method .* has no ppo component"),
         ("algo.discriminator.w_gp=5", "algo.discriminator.w_gp: the controlvae method"),
-        ("algo._target_=orchestrator.loop.Trainer", "algo._target_: cannot use 'orchestrator.loop.Trainer'"),
+        ("algo._target_=orchestrator.trainer.Trainer", "algo._target_: cannot use 'orchestrator.trainer.Trainer'"),
     ],
 )
 def test_bad_values_are_refused_with_their_key(override, message):

@@ -1,6 +1,6 @@
 """Evaluation videos: what is recorded, what the MP4s show, and what happens without GL.
 
-Rendering runs in `orchestrator.video`'s child process (this process imported MuJoCo without a GL
+Rendering runs in `orchestrator.evaluation.video`'s child process (this process imported MuJoCo without a GL
 backend), so the videos are checked as the service writes them: read back from the MP4 files.
 """
 
@@ -15,10 +15,10 @@ import numpy as np
 import pytest
 import torch
 
-from orchestrator import video
-from orchestrator.evaluate import evaluate_controller
+from orchestrator.evaluation import video
+from orchestrator.evaluation.protocols import evaluate_controller
 from orchestrator.schema import Config
-from orchestrator.tracking.base import NoOpTracker
+from orchestrator.tracking.base import NoOpLogger
 from workers.evaluation import fall_start, time_until_fall
 from workers.imitation_eval import reference_actor
 from workers.learners.base import Weights
@@ -35,7 +35,7 @@ def small_controller(character):
     return build_controller(character.num_bodies, character.num_actions, SMALL)
 
 
-class RecordingTracker(NoOpTracker):
+class RecordingLogger(NoOpLogger):
     """Keeps every artifact logged: (file name, artifact path, size in bytes)."""
 
     def __init__(self):
@@ -168,7 +168,7 @@ def test_gl_backends_fall_back_to_the_next_one(fresh_gl, monkeypatch, tmp_path, 
     # A first backend that fails (the child's `import mujoco` refuses the name), then one that works.
     monkeypatch.setattr(video, "HEADLESS_BACKENDS", ("no-such-backend", "egl"))
     rec = Recording("x", np.tile(character.model.qpos0, (3, 1)), None, character.model)
-    with caplog.at_level(logging.WARNING, logger="orchestrator.video"):
+    with caplog.at_level(logging.WARNING, logger="orchestrator.evaluation.video"):
         assert video.write_videos([rec], tmp_path, HZ, W, H) == [tmp_path / "x.mp4"]
     assert len(iio.imread(tmp_path / "x.mp4")) == 3
     assert not caplog.records  # a fallback that works is not worth a warning
@@ -198,7 +198,7 @@ def weights_of(character) -> Weights:
 
 
 def test_evaluation_logs_its_videos(character, walk_run):
-    tracker = RecordingTracker()
+    tracker = RecordingLogger()
     evaluate_controller(small_config(), character, walk_run, weights_of(character), tracker, 3, final=False)
     videos = {(name, path) for name, path, size in tracker.artifacts if name.endswith(".mp4") and size > 0}
     assert videos == {
@@ -213,7 +213,7 @@ def test_video_false_writes_no_video(character, walk_run, monkeypatch):
         raise AssertionError("no render process may start with eval.video=false")
 
     monkeypatch.setattr(video.RenderJob, "_start", no_child)
-    tracker = RecordingTracker()
+    tracker = RecordingLogger()
     cfg = small_config(video=False)
     metrics = evaluate_controller(cfg, character, walk_run, weights_of(character), tracker, 3, final=True)
     assert "eval/time_until_fall_mean" in metrics
@@ -222,31 +222,31 @@ def test_video_false_writes_no_video(character, walk_run, monkeypatch):
 
 def test_broken_gl_warns_once_and_the_evaluation_goes_on(fresh_gl, monkeypatch, character, walk_run, caplog):
     monkeypatch.setenv("MUJOCO_GL", "no-such-backend")  # the child's `import mujoco` refuses it
-    tracker = RecordingTracker()
+    tracker = RecordingLogger()
     cfg = small_config()
-    with caplog.at_level(logging.WARNING, logger="orchestrator.video"):
+    with caplog.at_level(logging.WARNING, logger="orchestrator.evaluation.video"):
         for iteration in (1, 2):
             metrics = evaluate_controller(cfg, character, walk_run, weights_of(character), tracker, iteration, False)
             assert np.isfinite(metrics["eval/time_until_fall_mean"])
         rec = Recording("x", np.zeros((2, character.model.nq)), None, character.model)
         assert video.write_videos([rec], Path("unused"), 30, W, H, run="test-run") == []
-    warnings = [r for r in caplog.records if r.name == "orchestrator.video"]
+    warnings = [r for r in caplog.records if r.name == "orchestrator.evaluation.video"]
     assert len(warnings) == 1
     assert "MUJOCO_GL=no-such-backend" in warnings[0].getMessage() and "invalid value" in warnings[0].getMessage()
     assert not [a for a in tracker.artifacts if a[0].endswith(".mp4")]
     assert not video.videos_enabled(cfg, "test-run")
     # Another run in the same process is told once too.
-    with caplog.at_level(logging.WARNING, logger="orchestrator.video"):
+    with caplog.at_level(logging.WARNING, logger="orchestrator.evaluation.video"):
         for _ in range(2):
             assert not video.videos_enabled(cfg, "another-run")
-    assert len([r for r in caplog.records if r.name == "orchestrator.video"]) == 2
+    assert len([r for r in caplog.records if r.name == "orchestrator.evaluation.video"]) == 2
 
 
 @pytest.mark.parametrize("progress", [True, False])
 def test_evaluation_shows_its_phases_on_a_progress_bar(character, walk_run, capsys, progress):
     cfg = small_config(video=False)
     cfg.progress = progress
-    evaluate_controller(cfg, character, walk_run, weights_of(character), NoOpTracker(), 3, final=False)
+    evaluate_controller(cfg, character, walk_run, weights_of(character), NoOpLogger(), 3, final=False)
     err = capsys.readouterr().err
     phases = ("time until fall", "tracking", "random sampling")
     if progress:

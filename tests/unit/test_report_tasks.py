@@ -243,7 +243,7 @@ def test_report_presets_name_known_tables_and_figures(name):
     assert callback.claims == name
 
 
-class FakeTracker:
+class FakeLogger:
     """What on_multirun_end uses of the MLflow tracker, writing nothing."""
 
     uri, run_id = "sqlite:///unused.db", "parent"
@@ -284,9 +284,9 @@ def test_the_sweep_end_writes_the_faceted_comparison(tmp_path, monkeypatch):
     preset = OmegaConf.to_container(OmegaConf.load(CONF / "report" / "task_sigma.yaml"))
     preset["curves"]["task/task"] = "no run logs this one"
     callback = SweepCallback(compare_by=SIGMA, **preset)
-    callback.tracker, callback.sweep_dir = FakeTracker(), tmp_path
+    callback.logger, callback.sweep_dir = FakeLogger(), tmp_path
     callback.on_multirun_end(OmegaConf.create({"preset": "ablation_sigma", "tracking": {"uri": "sqlite:///unused.db"}}))
-    assert callback.tracker.artifacts == ["comparison.png", "curves.png", "success_style.png", "comparison.md"]
+    assert callback.logger.artifacts == ["comparison.png", "curves.png", "success_style.png", "comparison.md"]
     text = (tmp_path / "comparison.md").read_text()
     assert "| terrain.kind | algo.task.sigma | seeds | task success rate |" in text
     assert "| rough | 0.1 | 2 | 0.310 ± 0.010 |" in text

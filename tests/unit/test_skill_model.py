@@ -7,9 +7,9 @@ from pathlib import Path
 import pytest
 from hydra import compose, initialize_config_dir
 
-from orchestrator.components_task import skill_model
-from orchestrator.schema import register, validate
-from orchestrator.stages import StageError
+from orchestrator.components.task import skill_model
+from orchestrator.compose import register, validate
+from orchestrator.upstream import StageError
 
 CONF = Path(__file__).resolve().parents[2] / "conf"
 register()

@@ -15,10 +15,11 @@ from pathlib import Path
 import pytest
 from mlflow.tracking import MlflowClient
 
-from orchestrator.tracking import NoOpTracker, flatten
+from orchestrator.tracking import NoOpLogger, flatten
 from orchestrator.tracking.base import MAX_PARAM_VALUE_LENGTH, TRUNCATION_MARK, truncate
-from orchestrator.tracking.mlflow import SPOOL_FILE, MlflowTracker, embedded_uri, replay_spool
+from orchestrator.tracking.mlflow import SPOOL_FILE, MlflowLogger, replay_spool
 from orchestrator.tracking.server import free_port
+from orchestrator.tracking.uri import embedded_uri
 
 
 def history(client: MlflowClient, run_id: str, key: str) -> list[tuple[int, float]]:
@@ -76,7 +77,7 @@ def test_noop_tracker_accepts_everything(tmp_path):
         def savefig(self, path):
             raise AssertionError("a no-op tracker draws nothing")
 
-    with NoOpTracker() as tracker:
+    with NoOpLogger() as tracker:
         tracker.log_params({"a": 1})
         tracker.log_metrics({"vae/loss": 1.0}, step=0)
         tracker.set_tags({"stage": "x"})
@@ -98,7 +99,7 @@ def run_dir(tmp_path) -> Path:
 
 
 def test_embedded_run_gets_params_metrics_tags_and_artifacts(run_dir, tmp_path):
-    tracker = MlflowTracker(None, "default", run_name="alpha=3e-4 seed=1", tags={"algo": "physicsvae"}, run_dir=run_dir)
+    tracker = MlflowLogger(None, "default", run_name="alpha=3e-4 seed=1", tags={"algo": "physicsvae"}, run_dir=run_dir)
     calls = []
     log_batch = tracker._sender.client.log_batch
     tracker._sender.client.log_batch = lambda *a, **k: (calls.append(k), log_batch(*a, **k))[1]
@@ -136,7 +137,7 @@ def test_embedded_run_gets_params_metrics_tags_and_artifacts(run_dir, tmp_path):
 
 
 def test_metrics_are_buffered_for_flush_every_calls(run_dir):
-    tracker = MlflowTracker(None, "default", run_dir=run_dir, flush_every=3)
+    tracker = MlflowLogger(None, "default", run_dir=run_dir, flush_every=3)
     client = MlflowClient(embedded_uri(run_dir))
     tracker.log_metrics({"a": 1.0}, step=1)
     tracker.log_metrics({"a": 2.0}, step=2)
@@ -149,12 +150,12 @@ def test_metrics_are_buffered_for_flush_every_calls(run_dir):
 
 
 def test_resume_continues_the_same_run(run_dir, caplog):
-    first = MlflowTracker(None, "default", run_name="r", run_dir=run_dir)
+    first = MlflowLogger(None, "default", run_name="r", run_dir=run_dir)
     first.log_params({"algo.alpha": "0.0003", "seed": 1})
     first.log_metrics({"vae/loss": 1.0}, step=100)
     first.close("KILLED")
 
-    second = MlflowTracker(None, "default", run_id=first.run_id, tags={"resumed": "yes"}, run_dir=run_dir)
+    second = MlflowLogger(None, "default", run_id=first.run_id, tags={"resumed": "yes"}, run_dir=run_dir)
     assert second.run_id == first.run_id
     client = MlflowClient(embedded_uri(run_dir))
     assert client.get_run(first.run_id).info.status == "RUNNING"
@@ -173,8 +174,8 @@ def test_resume_continues_the_same_run(run_dir, caplog):
 
 
 def test_child_run_names_its_parent(run_dir):
-    parent = MlflowTracker(None, "ablation_alpha", run_name="sweep", tags={"sweep_id": "s1"}, run_dir=run_dir)
-    child = MlflowTracker(None, "ablation_alpha", run_name="alpha=1e-3", parent_run_id=parent.run_id, run_dir=run_dir)
+    parent = MlflowLogger(None, "ablation_alpha", run_name="sweep", tags={"sweep_id": "s1"}, run_dir=run_dir)
+    child = MlflowLogger(None, "ablation_alpha", run_name="alpha=1e-3", parent_run_id=parent.run_id, run_dir=run_dir)
     child.log_metrics({"eval/time_until_fall": 12.0}, step=10)
     child.close()
     parent.close()
@@ -184,7 +185,7 @@ def test_child_run_names_its_parent(run_dir):
 
 
 def test_refused_entries_are_dropped_and_the_rest_of_the_batch_kept(run_dir, caplog):
-    tracker = MlflowTracker(None, "default", run_dir=run_dir)
+    tracker = MlflowLogger(None, "default", run_dir=run_dir)
     with caplog.at_level(logging.WARNING):
         tracker.log_params({"good": 1, "bad key!*": 2, "also_good": 3})
         tracker.log_metrics({"ok": 1.0, "no good?": 2.0}, step=0)
@@ -202,7 +203,7 @@ def test_refused_entries_are_dropped_and_the_rest_of_the_batch_kept(run_dir, cap
 def test_unreachable_server_spools_and_the_spool_replays(run_dir, tmp_path):
     uri = f"http://127.0.0.1:{free_port()}"  # nothing listens there
     start = time.perf_counter()
-    tracker = MlflowTracker(uri, "default", run_name="offline", tags={"stage": "vae"}, run_dir=run_dir)
+    tracker = MlflowLogger(uri, "default", run_name="offline", tags={"stage": "vae"}, run_dir=run_dir)
     assert tracker.run_id is None  # the run creation itself is spooled
     tracker.log_params({"seed": 0})
     for step in range(20):
@@ -230,12 +231,12 @@ def test_unreachable_server_spools_and_the_spool_replays(run_dir, tmp_path):
 
 
 def test_a_new_tracker_on_the_run_dir_replays_what_an_earlier_one_left(run_dir):
-    offline = MlflowTracker(f"http://127.0.0.1:{free_port()}", "default", run_name="first", run_dir=run_dir)
+    offline = MlflowLogger(f"http://127.0.0.1:{free_port()}", "default", run_name="first", run_dir=run_dir)
     offline.log_metrics({"a": 1.0}, step=1)
     offline.close()
     assert offline.pending() == 3
 
-    online = MlflowTracker(None, "default", run_name="second", run_dir=run_dir)  # replays before creating its run
+    online = MlflowLogger(None, "default", run_name="second", run_dir=run_dir)  # replays before creating its run
     assert online.pending() == 0
     client = MlflowClient(embedded_uri(run_dir))
     runs = client.search_runs([client.get_experiment_by_name("default").experiment_id])
@@ -246,19 +247,19 @@ def test_a_new_tracker_on_the_run_dir_replays_what_an_earlier_one_left(run_dir):
 
 def test_a_run_that_cannot_be_resumed_starts_anew(run_dir, caplog):
     with caplog.at_level(logging.WARNING):
-        tracker = MlflowTracker(None, "default", run_id="0" * 32, run_dir=run_dir)
+        tracker = MlflowLogger(None, "default", run_id="0" * 32, run_dir=run_dir)
     assert "cannot be resumed" in caplog.text
     assert tracker.run_id is not None and tracker.run_id != "0" * 32
     tracker.close()
 
 
 def test_a_damaged_spool_line_is_skipped(run_dir, caplog):
-    offline = MlflowTracker(f"http://127.0.0.1:{free_port()}", "default", run_name="cut", run_dir=run_dir)
+    offline = MlflowLogger(f"http://127.0.0.1:{free_port()}", "default", run_name="cut", run_dir=run_dir)
     offline.log_metrics({"a": 1.0}, step=1)
     with (run_dir / SPOOL_FILE).open("a") as f:
         f.write('{"op": "metrics", "run": "pend')  # a write cut short by a crash
     with caplog.at_level(logging.WARNING):
-        online = MlflowTracker(None, "default", run_name="next", run_dir=run_dir)
+        online = MlflowLogger(None, "default", run_name="next", run_dir=run_dir)
     assert "is not a record; skipped" in caplog.text
     assert online.pending() == 0 and not (run_dir / SPOOL_FILE).exists()
     client = MlflowClient(embedded_uri(run_dir))
@@ -274,7 +275,7 @@ def test_the_interface_loads_no_mlflow():
 
 
 def test_a_backend_that_fails_then_recovers(run_dir):
-    tracker = MlflowTracker(None, "default", run_dir=run_dir, retry_interval_s=60)
+    tracker = MlflowLogger(None, "default", run_dir=run_dir, retry_interval_s=60)
     client = tracker._sender.client
     log_batch = client.log_batch
 
@@ -310,7 +311,7 @@ def wait_until(condition, timeout_s: float = 30.0) -> bool:
 
 
 def test_the_spool_drains_in_the_background_while_nothing_more_is_logged(run_dir):
-    tracker = MlflowTracker(None, "default", run_dir=run_dir, retry_interval_s=0.05)
+    tracker = MlflowLogger(None, "default", run_dir=run_dir, retry_interval_s=0.05)
     client = tracker._sender.client
     log_batch = client.log_batch
 
@@ -334,7 +335,7 @@ def test_the_spool_drains_in_the_background_while_nothing_more_is_logged(run_dir
 def test_records_logged_during_a_background_replay_are_kept_in_order(run_dir):
     """The training thread appends while the background thread sends the spool: it does not wait for the
     request, nothing it appends is lost when the replay rewrites the spool, and nothing is sent twice."""
-    tracker = MlflowTracker(None, "default", run_dir=run_dir, retry_interval_s=0.05)
+    tracker = MlflowLogger(None, "default", run_dir=run_dir, retry_interval_s=0.05)
     client = tracker._sender.client
     log_batch = client.log_batch
     started, release = threading.Event(), threading.Event()
@@ -365,7 +366,7 @@ def test_records_logged_during_a_background_replay_are_kept_in_order(run_dir):
 
 def test_close_stops_a_background_thread_that_is_still_retrying(run_dir):
     uri = f"http://127.0.0.1:{free_port()}"  # nothing listens there
-    tracker = MlflowTracker(uri, "default", run_dir=run_dir, retry_interval_s=0.05)
+    tracker = MlflowLogger(uri, "default", run_dir=run_dir, retry_interval_s=0.05)
     tracker.log_metrics({"a": 1.0}, step=1)
     thread = tracker._sender._thread
     assert thread is not None and thread.is_alive()
@@ -377,7 +378,7 @@ def test_close_stops_a_background_thread_that_is_still_retrying(run_dir):
 def test_a_spool_of_only_damaged_lines_is_cleared_not_retried_forever(run_dir):
     run_dir.mkdir(parents=True)
     (run_dir / SPOOL_FILE).write_text('{"op": "metrics", "ru\n')  # nothing in it can be sent
-    tracker = MlflowTracker(None, "default", run_dir=run_dir, retry_interval_s=0.05)
+    tracker = MlflowLogger(None, "default", run_dir=run_dir, retry_interval_s=0.05)
     assert tracker.pending() == 0 and not (run_dir / SPOOL_FILE).exists()
     tracker.log_metrics({"a": 1.0}, step=1)
     tracker.close()
