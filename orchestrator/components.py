@@ -23,10 +23,11 @@ from workers.learners.world_model import WorldModelBatch, WorldModelLearner
 from workers.models import body_state
 from workers.models.world_model import WorldModel
 from workers.motion.library import MotionLibrary
-from workers.replay import ReplayBuffer, StartBatch, Trajectory, WindowBatch
+from workers.replay import ReplayBuffer
 from workers.rollout import RolloutWorker
 from workers.sim.character import Character
 from workers.sim.env import SimConfig
+from workers.types import StartBatch, Trajectory, WindowBatch
 
 
 def load_world(cfg: Config) -> tuple[Character, MotionLibrary]:

@@ -19,9 +19,9 @@ from orchestrator.schema import Config
 from workers.learners.discriminator import DiscriminatorBatch, DiscriminatorLearner
 from workers.learners.ppo import PPOLearner, Rollout
 from workers.motion.library import MotionLibrary
-from workers.replay import Trajectory
 from workers.sim.character import Character
 from workers.sim.features import amp_dim, amp_features
+from workers.types import Trajectory
 
 
 def rollout_of(trajs: tuple[Trajectory, ...], rewards: list[np.ndarray] | None) -> Rollout:

@@ -21,8 +21,8 @@ from orchestrator.schema import Config
 from orchestrator.stages import StageError, Upstream
 from workers.learners.task import GoalBuffer, TaskLearner
 from workers.models.world_model import WorldModel
-from workers.replay import Trajectory
 from workers.task_policy import skill_controller
+from workers.types import Trajectory
 
 
 def skill_model(up: Upstream, world_model: bool) -> dict[str, Any]:

@@ -36,11 +36,11 @@ from workers.learners.base import Weights
 from workers.models import body_state
 from workers.motion.library import MotionLibrary
 from workers.policies import Policy
-from workers.replay import Trajectory
 from workers.rewards import DEFAULT_WEIGHTS, imitation_reward
 from workers.sim.character import Character
 from workers.sim.env import BatchedSim, SimConfig, StepResult
 from workers.sim.features import amp_dim, amp_features
+from workers.types import Trajectory
 
 
 class Recorder:
