@@ -31,6 +31,7 @@ from typing import Any
 
 import numpy as np
 
+from workers.balancing import discounted_returns
 from workers.types import StartBatch, Trajectory, WindowBatch
 
 _STREAM_SHIFT = 32  # stream id = worker << 32 | env
@@ -198,8 +199,6 @@ class ReplayBuffer:
         Rewards are the stored ones; a trajectory ends where its links do, and is bootstrapped there
         with `bootstrap(clip_id, frame)` [n] of the reference frame after its last state.
         """
-        from workers.balancing import discounted_returns
-
         size = self._size
         clip, frame, successor = self._clip_id[:size], self._frame[:size], self._next[:size]
         ends = np.flatnonzero(successor < 0)

@@ -50,8 +50,8 @@ class Trajectory:
     frame: np.ndarray  # [T, M] reference frame of each state
     version: int  # the policy version that collected it
     worker: int  # the worker that collected it
-    # What the method's learners need beyond the body states (`workers.rollout`): the policy's
-    # observations, log-probabilities and values, Φ(s), rewards, truncations. The buffer keeps
+    # What the method's learners need beyond the body states (`workers.rollout`, `workers.recorders`):
+    # the policy's observations, log-probabilities and values, Φ(s), rewards, truncations. The buffer keeps
     # `reward` [T, M] (data balancing reads it) and cuts links at `switched` [T, M]; it ignores the rest.
     extras: dict[str, np.ndarray] = field(default_factory=dict)
 

@@ -31,7 +31,7 @@ if TYPE_CHECKING:
     from orchestrator.stages import Upstream
     from workers.learners.base import Weights
     from workers.policies import Policy
-    from workers.rollout import Recorder
+    from workers.recorders import Recorder
     from workers.sim.character import Character
     from workers.sim.env import SimConfig
 

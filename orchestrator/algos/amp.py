@@ -16,7 +16,7 @@ from typing import Any
 from orchestrator.algos import Component
 from orchestrator.algos.onpolicy import OnPolicy
 from orchestrator.components_ppo import DiscriminatorActor
-from workers.rollout import AMPFeatures
+from workers.recorders import AMPFeatures
 
 
 class AMP(OnPolicy):

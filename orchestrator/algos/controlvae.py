@@ -27,9 +27,10 @@ from typing import Any
 from orchestrator.algos import Component, Method, UpdateSchedule
 from orchestrator.components import ReplayActor, VAEActor, WorldModelActor, load_world
 from orchestrator.evaluate import evaluate_controller
-from workers.balancing import FrameValues, TrackingReward
+from workers.balancing import FrameValues
 from workers.learners.vae import state_weight_vector
 from workers.policies import VAEPolicy
+from workers.recorders import TrackingReward
 
 
 class ControlVAE(Method):

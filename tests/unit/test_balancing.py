@@ -8,7 +8,6 @@ import torch
 
 from workers.balancing import (
     FrameValues,
-    TrackingReward,
     discounted_returns,
     frame_sums,
     library_rows,
@@ -18,6 +17,7 @@ from workers.learners.base import Weights
 from workers.learners.vae import VAEConfig, build_controller, state_weight_vector
 from workers.motion.library import MotionLibrary, balancing_weights
 from workers.policies import VAEPolicy
+from workers.recorders import TrackingReward
 from workers.replay import ReplayBuffer
 from workers.rollout import RolloutWorker
 from workers.types import Trajectory
