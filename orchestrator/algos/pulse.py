@@ -29,7 +29,8 @@ from orchestrator.algos.demos import expert_weights
 from orchestrator.components import ReplayActor, load_world, sim_config
 from orchestrator.components_distill import PulseActor
 from orchestrator.evaluate import evaluate_controller
-from workers.distill import teacher_actions, tracking_success
+from workers.distill import teacher_actions
+from workers.evaluation.success import tracking_success
 from workers.learners.vae import build_controller
 from workers.models import body_state
 from workers.policies import VAEPolicy, expert_module

@@ -14,7 +14,7 @@ learner (`learner-task`) directly, which keeps the newest `buffer_size` of them
 through the frozen world model, Eq. 22's losses. Trainer `ppo` is
 `orchestrator.algos.task_ppo` (PPO in the simulator, reward e^(−L_g)).
 
-Evaluation (`workers.task_eval`): the normalised return and success rate over a
+Evaluation (`workers.evaluation.tasks`): the normalised return and success rate over a
 fixed set of goals, the style score (the applied action's deviation from the
 decoder's own, degrees) and the time until fall under the task policy. At the start
 the skill stage's own evaluation is copied into this run as `skill/...`, so a

@@ -35,7 +35,7 @@ from orchestrator.loop import Trainer
 from orchestrator.schema import validate
 from orchestrator.stages import compose
 from orchestrator.tracking.base import NoOpTracker
-from workers.evaluation import time_until_fall, tracking_error
+from workers.evaluation.controller import time_until_fall, tracking_error
 from workers.learners.vae import build_controller
 
 # (metric, level, direction): reached when the metric is below (-1) or above (+1) the level.

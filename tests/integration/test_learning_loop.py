@@ -19,7 +19,7 @@ from mlflow.tracking import MlflowClient
 from orchestrator.build import run
 from orchestrator.components import load_world, sim_config
 from orchestrator.schema import validate
-from workers.evaluation import tracking_error
+from workers.evaluation.controller import tracking_error
 from workers.learners.vae import build_controller
 
 CONF = Path(__file__).resolve().parents[2] / "conf"

@@ -1,4 +1,4 @@
-"""The papers' evaluation protocols, run in the batched simulator.
+"""A VAE controller's evaluation: PhysicsVAE's and ControlVAE's protocols, run in the batched simulator.
 
 - `time_until_fall` (PhysicsVAE Fig. 9, §5.5.1): every rollout starts from one
   fixed reference state, z is drawn from the prior at every control step, and a

@@ -1,10 +1,10 @@
 """Evaluation videos: the rollouts to show, recorded as qpos per control step, and their offscreen rendering.
 
 Recording (simulation, no GL):
-- `record_fall_rollouts`: time-until-fall rollouts as `workers.evaluation.time_until_fall` runs them
+- `record_fall_rollouts`: time-until-fall rollouts as `workers.evaluation.controller.time_until_fall` runs them
   (the fixed standing start, z from the prior every control step), each cut one second after its
   first fall.
-- `record_tracking`: one clip tracked with the posterior, as `workers.evaluation.tracking_error` does,
+- `record_tracking`: one clip tracked with the posterior, as `workers.evaluation.controller.tracking_error` does,
   with the reference's qpos beside it (drawn as a ghost).
 - `record_policy_episode`: one episode of an actor (a PPO policy's mean action) from a reference start,
   with its reference, until it falls or the clip ends.
@@ -83,7 +83,7 @@ def record_fall_rollouts(
     """
     import torch
 
-    from workers.evaluation import _features, _inference, _no_tracking_termination, fall_start
+    from workers.evaluation.controller import _features, _inference, _no_tracking_termination, fall_start
     from workers.sim.env import BatchedSim
 
     if num_rollouts < 1:
@@ -123,7 +123,7 @@ def record_tracking(
     `tracking_error` tracks a segment, for up to `max_seconds` (a one-shot clip: until its last frame)."""
     import torch
 
-    from workers.evaluation import _features, _inference, _no_tracking_termination, fall_start
+    from workers.evaluation.controller import _features, _inference, _no_tracking_termination, fall_start
     from workers.sim.env import BatchedSim
 
     config = _no_tracking_termination(sim_config)
