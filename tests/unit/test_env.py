@@ -1,10 +1,12 @@
 """The batched simulator: reset, step, terminations, determinism."""
 
+from dataclasses import replace
+
 import mujoco
 import numpy as np
 import pytest
 
-from workers.sim.env import BatchedSim, SimConfig
+from workers.sim.env import BatchedSim, SimConfig, without_tracking_termination
 
 
 def test_reset_is_reference_state_initialisation(character, walk_run):
@@ -117,3 +119,12 @@ def test_batch_matches_a_loop_over_mjdata(character, walk_run):
         np.testing.assert_array_equal(sim.qacc_warmstart, np.stack([d.qacc_warmstart for d in datas]))
         fell = [d.ncon > 0 and bool(sim._fall_geom[d.contact.geom].any()) for d in datas]
         np.testing.assert_array_equal(r.fell, fell)
+
+
+def test_without_tracking_termination_keeps_everything_else():
+    base = SimConfig(control_hz=20.0, sim_hz=120.0, tracking_error_m=0.3, max_episode_steps=50, end_on_fall=False)
+    evaluation = without_tracking_termination(base)
+    assert evaluation == replace(base, tracking_error_m=0.0, max_episode_steps=0)
+    assert without_tracking_termination(base, keep_time_limit=True) == replace(base, tracking_error_m=0.0)
+    assert without_tracking_termination() == replace(SimConfig(), tracking_error_m=0.0, max_episode_steps=0)
+    assert base.tracking_error_m == 0.3 and base.max_episode_steps == 50  # the given config is left as it was

@@ -17,7 +17,6 @@ growing per-frame error.
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Callable
 
 import numpy as np
@@ -25,7 +24,7 @@ import numpy as np
 from workers.evaluation.pose_error import dtw_pose_error, per_frame_pose_error, relative_positions
 from workers.motion.library import MotionLibrary
 from workers.sim.character import Character
-from workers.sim.env import BatchedSim, SimConfig
+from workers.sim.env import BatchedSim, SimConfig, without_tracking_termination
 from workers.sim.features import heading_inverse
 from workers.types import KinState
 
@@ -55,7 +54,7 @@ def pose_error_episodes(
     """
     from workers.models import body_state
 
-    config = dataclasses.replace(sim_config or SimConfig(), tracking_error_m=0.0, max_episode_steps=0)
+    config = without_tracking_termination(sim_config)
     sim = BatchedSim(character, library, num_episodes, config, seed=seed)
     steps = max(1, int(round(max_seconds * config.control_hz)))
     start_clip, start_frame = sim.clip_id.copy(), sim.start_frame.copy()

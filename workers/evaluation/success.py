@@ -12,13 +12,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from workers.evaluation.controller import _no_tracking_termination
 from workers.evaluation.imitation import Actor
 from workers.evaluation.pose_error import relative_positions
 from workers.models import body_state
 from workers.motion.library import MotionLibrary
 from workers.sim.character import Character
-from workers.sim.env import BatchedSim, SimConfig
+from workers.sim.env import BatchedSim, SimConfig, without_tracking_termination
 
 
 def tracking_steps(library: MotionLibrary, control_hz: float, seconds: float | None = None) -> np.ndarray:
@@ -73,7 +72,7 @@ def tracking_success(
              "per_clip": {name: {"success", "success_mean_joint": bool, "mpjpe_mm", "mpjpe_local_mm": float,
                                  "max_error_m": largest e_j of any joint at any step}}}.
     """
-    config = _no_tracking_termination(sim_config)
+    config = without_tracking_termination(sim_config)
     n = library.num_clips
     steps = tracking_steps(library, config.control_hz, seconds)  # [n]
     sim = BatchedSim(character, library, n, config, seed=seed)

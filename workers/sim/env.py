@@ -61,7 +61,7 @@ further than `tracking_error_m` from the reference's for `tracking_error_s`), `c
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import cached_property
 
 import mujoco
@@ -111,6 +111,17 @@ class SimConfig:
                 f"sim_hz ({self.sim_hz}) must be a positive whole multiple of control_hz ({self.control_hz})"
             )
         return int(round(ratio))
+
+
+def without_tracking_termination(config: SimConfig | None = None, keep_time_limit: bool = False) -> SimConfig:
+    """`config` (default `SimConfig()`) with no end on tracking failure (`tracking_error_m` = 0) and,
+    unless `keep_time_limit`, no episode cap (`max_episode_steps` = 0).
+
+    For runs that do not hold the character to its reference: the evaluations, which run each
+    episode for their own number of steps, and AMP, whose policy imitates a style, not the clip."""
+    config = config or SimConfig()
+    time_limit = config.max_episode_steps if keep_time_limit else 0
+    return replace(config, tracking_error_m=0.0, max_episode_steps=time_limit)
 
 
 @dataclass
