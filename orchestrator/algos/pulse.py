@@ -109,7 +109,7 @@ class Pulse(Method):
         def student(sim, bs):  # the encoder's mean given the reference's next state
             s = body_state.features(torch.from_numpy(bs))
             frames = sim.start_frame + sim.steps
-            ref_next = torch.from_numpy(library.features(sim.clip_id, frames + 1).astype(np.float32))
+            ref_next = torch.from_numpy(sim.reference_next_features().astype(np.float32))
             q, _ = controller.encode(s, ref_next)
             a = controller.act(s, q.mean).numpy()
             visited.append((bs.copy(), sim.clip_id.copy(), frames.copy(), a))

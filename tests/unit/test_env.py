@@ -128,3 +128,12 @@ def test_without_tracking_termination_keeps_everything_else():
     assert without_tracking_termination(base, keep_time_limit=True) == replace(base, tracking_error_m=0.0)
     assert without_tracking_termination() == replace(SimConfig(), tracking_error_m=0.0, max_episode_steps=0)
     assert base.tracking_error_m == 0.3 and base.max_episode_steps == 50  # the given config is left as it was
+
+
+def test_reference_next_features_is_the_library_one_frame_ahead(character, walk_run):
+    sim = BatchedSim(character, walk_run, num_envs=4, seed=2)
+    sim.step(character.qpos_to_action(sim.reference_state().qpos))
+    expected = walk_run.features(sim.clip_id, sim.start_frame + sim.steps + 1)
+    np.testing.assert_array_equal(sim.reference_next_features(), expected)
+    ids = np.array([3, 1])
+    np.testing.assert_array_equal(sim.reference_next_features(ids), expected[ids])

@@ -194,7 +194,7 @@ def tracking_error(
                 actions = np.asarray(policy(sim))
             else:
                 s = _features(sim)
-                ref_next = library.features(sim.clip_id, sim.start_frame + sim.steps + 1)
+                ref_next = sim.reference_next_features()
                 posterior, _ = controller.encode(s, torch.from_numpy(ref_next.astype(np.float32)))
                 actions = controller.act(s, posterior.mean).numpy()
             result = sim.step(actions)

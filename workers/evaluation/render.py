@@ -135,7 +135,7 @@ def record_tracking(
     with _inference(controller):
         for _ in range(steps):
             s = _features(sim)
-            ref_next = library.features(sim.clip_id, sim.start_frame + sim.steps + 1)
+            ref_next = sim.reference_next_features()
             posterior, _ = controller.encode(s, torch.from_numpy(ref_next.astype(np.float32)))
             result = sim.step(controller.act(s, posterior.mean).numpy())
             qpos.append(result.kin.qpos[0])

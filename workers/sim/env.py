@@ -348,6 +348,13 @@ class BatchedSim:
         """The reference state at each environment's current time."""
         return self.library.state(self.clip_id, self.start_frame + self.steps)
 
+    def reference_next_features(self, env_ids: np.ndarray | None = None) -> np.ndarray:
+        """s̃_{t+1} [N, D] (rows `env_ids` only, when given): the reference's state features one control
+        step after each environment's current time, as the library stores them (what a tracking policy
+        observes and the VAE's posterior reads)."""
+        ids = slice(None) if env_ids is None else env_ids
+        return self.library.features(self.clip_id[ids], self.start_frame[ids] + self.steps[ids] + 1)
+
     @property
     def qacc_warmstart(self) -> np.ndarray:
         """[N, nv] the solver's warm start of each environment, a live view: writes set it."""
