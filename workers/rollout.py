@@ -33,6 +33,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from workers.evaluation.controller import relative_position_error
 from workers.learners.base import Weights
 from workers.models import body_state
 from workers.motion.library import MotionLibrary
@@ -173,8 +174,6 @@ class RolloutWorker:
         steps, ending early where the character falls (no reset, no tracking-failure end). Episodes run
         `num_envs` at a time. Each is {"states" [L+1, B, 13], "actions" [L, A], "clip", "fell",
         "tracking_error": mean body-position error relative to the root (m)}."""
-        from workers.evaluation.controller import relative_position_error
-
         sim, m = self.sim, self.num_envs
         clip_ids, max_steps = np.asarray(clip_ids, int), np.asarray(max_steps, int)
         out: list[dict[str, Any]] = []
