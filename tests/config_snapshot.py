@@ -40,8 +40,11 @@ def _api():
 
 def chain_hash(cfg, config_hash, upstream_config) -> str:
     """The stage hash a run of `cfg` gets, its needs composed and hashed first (as stages.resolve does)."""
-    above = {role: chain_hash(upstream_config(cfg, spec, role), config_hash, upstream_config)
-             for role, spec in cfg.algo.needs.items() if not spec.startswith("run:")}
+    above = {
+        role: chain_hash(upstream_config(cfg, spec, role), config_hash, upstream_config)
+        for role, spec in cfg.algo.needs.items()
+        if not spec.startswith("run:")
+    }
     return config_hash(cfg, above)
 
 
@@ -72,7 +75,10 @@ def configs(former: bool = False) -> dict:
     for algo in sorted(p.stem for p in (CONF / "algo").glob("*.yaml")):
         for scale in sorted(p.stem for p in (CONF / "scale").glob("*.yaml")):
             cfg = validate(compose([f"algo={algo}", f"scale={scale}", "run_dir=outputs/snapshot"]))
-            out[f"{algo}/{scale}"] = {"config": asdict(cfg), "stage_hash": chain_hash(cfg, config_hash, upstream_config)}
+            out[f"{algo}/{scale}"] = {
+                "config": asdict(cfg),
+                "stage_hash": chain_hash(cfg, config_hash, upstream_config),
+            }
             if former:
                 out[f"{algo}/{scale}"]["former_stage_hash"] = chain_hash(cfg, former_hash, upstream_config)
     return out
@@ -85,8 +91,15 @@ def history(overrides: list[str]) -> dict:
     from mlflow import MlflowClient
 
     with tempfile.TemporaryDirectory() as tmp:
-        args = ["runtime=local", "seed=0", "eval.video=false", "progress=false", f"run_dir={tmp}/run",
-                f"hydra.run.dir={tmp}/run", *overrides]
+        args = [
+            "runtime=local",
+            "seed=0",
+            "eval.video=false",
+            "progress=false",
+            f"run_dir={tmp}/run",
+            f"hydra.run.dir={tmp}/run",
+            *overrides,
+        ]
         subprocess.run([sys.executable, "-m", "orchestrator", *args], check=True, cwd=ROOT)
         client = MlflowClient(f"sqlite:///{tmp}/run/mlflow.db")
         exp = [e.experiment_id for e in client.search_experiments()]
@@ -95,16 +108,20 @@ def history(overrides: list[str]) -> dict:
         for key in sorted(run.data.metrics):
             if key.startswith(TIMING) or key.endswith("_s"):
                 continue
-            out[key] = [(m.step, m.value) for m in sorted(client.get_metric_history(run.info.run_id, key),
-                                                         key=lambda m: (m.step, m.timestamp))]
+            out[key] = [
+                (m.step, m.value)
+                for m in sorted(client.get_metric_history(run.info.run_id, key), key=lambda m: (m.step, m.timestamp))
+            ]
         return out
 
 
 def _strip_targets(x):
     """Module paths of classes (`_target_`) moved on purpose; compare the class names only."""
     if isinstance(x, dict):
-        return {k: (v.rpartition(".")[2] if k == "_target_" and isinstance(v, str) else _strip_targets(v))
-                for k, v in x.items()}
+        return {
+            k: (v.rpartition(".")[2] if k == "_target_" and isinstance(v, str) else _strip_targets(v))
+            for k, v in x.items()
+        }
     if isinstance(x, list):
         return [_strip_targets(v) for v in x]
     return x

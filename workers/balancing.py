@@ -3,7 +3,7 @@
 - Eq. 20, the reward of a simulated state s_t against its reference s̃_t:
   r_t = exp(−‖W(s̃_t − s_t)‖₁ / T_V), with W the reconstruction loss's feature
   weights (Eq. 16) and T_V = 20. Its mean over the collected states is also the
-  paper's learning curve. `TrackingReward` records it for every collected state.
+  paper's learning curve. `workers.recorders.TrackingReward` records it for every collected state.
 - Eq. 18, the discounted return of a state along its simulated trajectory,
   bootstrapped at the trajectory's end with the value of the reference frame after
   its last state: V*_t = Σ_{k=0}^{T−t} γ^k r_{t+k} + γ^{T+1−t} V_{T+1} (γ = 0.95).
@@ -23,45 +23,11 @@ from typing import Any
 import numpy as np
 
 from workers.motion.library import MotionLibrary, balancing_weights
-from workers.rollout import Recorder
-from workers.sim.env import BatchedSim, StepResult
-from workers.sim.features import state_features
 
 
 def tracking_reward(state: np.ndarray, ref_state: np.ndarray, weights: np.ndarray, temperature: float = 20.0):
     """Eq. 20: exp(−‖W(s̃ − s)‖₁ / T_V) over the last axis of s [..., D], W a weight per feature [D]."""
     return np.exp(-np.abs((ref_state - state) * weights).sum(-1) / temperature).astype(np.float32)
-
-
-class TrackingReward(Recorder):
-    """r_t of Eq. 20 for the state *before* each step (the state stored with transition t), [T, M].
-
-    The state after a reset is the reference itself (r = 1 up to rounding); it is computed all the same.
-    """
-
-    def __init__(self, weights: np.ndarray, temperature: float = 20.0):
-        self.weights = np.asarray(weights, np.float64)
-        self.temperature = temperature
-
-    def _of(self, sim: BatchedSim, state: np.ndarray, ids: np.ndarray | slice = slice(None)) -> np.ndarray:
-        ref = sim.library.features(sim.clip_id[ids], (sim.start_frame + sim.steps)[ids])
-        return tracking_reward(state, ref, self.weights, self.temperature)
-
-    def begin(self, steps: int, num_envs: int, sim: BatchedSim) -> None:
-        self.reward = np.empty((steps, num_envs), np.float32)
-        self.current = self._of(sim, state_features(sim.kin_state()))
-
-    def record(self, t: int, sim: BatchedSim, result: StepResult) -> None:
-        self.reward[t] = self.current
-        self.current = tracking_reward(result.state, result.ref_state, self.weights, self.temperature)
-
-    def after_reset(self, sim: BatchedSim, ids: np.ndarray) -> None:
-        self.current[ids] = self._of(sim, state_features(sim.kin_state())[ids], ids)
-
-    after_switch = after_reset  # the same state against its new reference
-
-    def finish(self) -> dict[str, np.ndarray]:
-        return {"reward": self.reward}
 
 
 def library_rows(library: MotionLibrary, clip_ids: np.ndarray, frames: np.ndarray) -> np.ndarray:

@@ -56,8 +56,7 @@ def observe(kind: str, sim: BatchedSim, bs: np.ndarray) -> np.ndarray:
     s = body_state.features_np(bs)
     if kind == "state":
         return s
-    ref_next = sim.library.features(sim.clip_id, sim.start_frame + sim.steps + 1)
-    return imitation_observation(s, ref_next)
+    return imitation_observation(s, sim.reference_next_features())
 
 
 class Policy:
@@ -123,8 +122,7 @@ class VAEPolicy(Policy):
     @torch.no_grad()
     def act(self, sim: BatchedSim, bs: np.ndarray) -> tuple[np.ndarray, dict[str, np.ndarray]]:
         s = body_state.features(torch.from_numpy(bs))
-        frames = sim.start_frame + sim.steps
-        ref_next = torch.from_numpy(sim.library.features(sim.clip_id, frames + 1).astype(np.float32))
+        ref_next = torch.from_numpy(sim.reference_next_features().astype(np.float32))
         posterior, prior = self.controller.encode(s, ref_next)
         use_prior = torch.from_numpy(self.use_prior)[:, None]
         mean = torch.where(use_prior, prior.mean, posterior.mean)
@@ -237,7 +235,7 @@ class ExpertPolicy(Policy):
         if self.controller is None:
             raise RuntimeError("the expert has no weights yet")
         s = body_state.features(torch.from_numpy(bs))
-        ref_next = sim.library.features(sim.clip_id, sim.start_frame + sim.steps + 1)
+        ref_next = sim.reference_next_features()
         posterior, _ = self.controller.encode(s, torch.from_numpy(ref_next.astype(np.float32)))
         return self.controller.act(s, posterior.mean).numpy()
 

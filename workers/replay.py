@@ -1,6 +1,6 @@
 """The replay buffer: a ring of simulated transitions, handed out as windows of consecutive steps.
 
-Rollout workers push `Trajectory`s (T steps of M environments). Every
+Rollout workers push `Trajectory`s (`workers.types`: T steps of M environments). Every
 environment of every worker is a *stream*, identified by (worker, env). The
 buffer stores each stream's T transitions of one push contiguously, and links
 each transition to its successor in the same stream:
@@ -27,58 +27,14 @@ or a gap, and can be longer than one push.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
+from workers.balancing import discounted_returns
+from workers.types import StartBatch, Trajectory, WindowBatch
+
 _STREAM_SHIFT = 32  # stream id = worker << 32 | env
-
-
-@dataclass
-class Trajectory:
-    """One coarse collect of one rollout worker: T control steps of M environments.
-
-    Float arrays are float32.
-    """
-
-    states: np.ndarray  # [T, M, B, 13] body state before each step
-    next_states: np.ndarray  # [T, M, B, 13] its true successor (taken before any reset)
-    actions: np.ndarray  # [T, M, A] the PD targets applied (noise included)
-    done: np.ndarray  # [T, M] bool: the environment was reset after this step
-    clip_id: np.ndarray  # [T, M] reference clip of each state
-    frame: np.ndarray  # [T, M] reference frame of each state
-    version: int  # the policy version that collected it
-    worker: int  # the worker that collected it
-    # What the method's learners need beyond the body states (`workers.rollout`): the policy's
-    # observations, log-probabilities and values, Φ(s), rewards, truncations. The buffer keeps
-    # `reward` [T, M] (data balancing reads it) and cuts links at `switched` [T, M]; it ignores the rest.
-    extras: dict[str, np.ndarray] = field(default_factory=dict)
-
-    @property
-    def num_transitions(self) -> int:
-        return int(self.done.size)
-
-
-@dataclass
-class WindowBatch:
-    """n windows of L consecutive transitions."""
-
-    states: np.ndarray  # [n, L+1, B, 13] the L states and the true successor of the last
-    actions: np.ndarray  # [n, L, A]
-    clip_id: np.ndarray  # [n] reference clip of the first state
-    frame: np.ndarray  # [n] reference frame of the first state
-    version: np.ndarray  # [n] policy version that collected the first transition
-
-
-@dataclass
-class StartBatch:
-    """n single stored states, the starts of synthetic rollouts, and more states for input statistics."""
-
-    states: np.ndarray  # [n, B, 13]
-    clip_id: np.ndarray  # [n] reference clip of each state
-    frame: np.ndarray  # [n] reference frame of each state
-    norm_states: np.ndarray  # [k, B, 13] drawn independently of the starts
 
 
 class ReplayBuffer:
@@ -243,8 +199,6 @@ class ReplayBuffer:
         Rewards are the stored ones; a trajectory ends where its links do, and is bootstrapped there
         with `bootstrap(clip_id, frame)` [n] of the reference frame after its last state.
         """
-        from workers.balancing import discounted_returns
-
         size = self._size
         clip, frame, successor = self._clip_id[:size], self._frame[:size], self._next[:size]
         ends = np.flatnonzero(successor < 0)

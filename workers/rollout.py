@@ -10,8 +10,9 @@ with their cause, and what the policy and the recorders add:
 - for policies that act on an observation, the observation after the last step
   (`last_obs`) and the final observation of each truncated episode (`final_obs`,
   stored sparsely as rows t, env m), for bootstrapping;
-- each `Recorder`'s arrays: AMP's Φ(s_t), Φ(s_{t+1}) (`AMPFeatures`), the
-  imitation reward and its terms (`ImitationReward`).
+- each `Recorder`'s arrays (`workers.recorders`): AMP's Φ(s_t), Φ(s_{t+1})
+  (`AMPFeatures`), the imitation reward and its terms (`ImitationReward`),
+  ControlVAE's tracking reward (`TrackingReward`).
 
 Finished environments (fall, tracking failure, clip end, timeout) are reset at
 once from the library's start distribution; `truncated` marks the ends that are
@@ -32,74 +33,15 @@ from typing import Any
 import numpy as np
 import torch
 
+from workers.evaluation.controller import relative_position_error
 from workers.learners.base import Weights
 from workers.models import body_state
 from workers.motion.library import MotionLibrary
 from workers.policies import Policy
-from workers.replay import Trajectory
-from workers.rewards import DEFAULT_WEIGHTS, imitation_reward
+from workers.recorders import Recorder
 from workers.sim.character import Character
 from workers.sim.env import BatchedSim, SimConfig, StepResult
-from workers.sim.features import amp_dim, amp_features
-
-
-class Recorder:
-    """Records arrays [T, M, ...] alongside the trajectory, from each step's result."""
-
-    def begin(self, steps: int, num_envs: int, sim: BatchedSim) -> None:
-        raise NotImplementedError
-
-    def record(self, t: int, sim: BatchedSim, result: StepResult) -> None:
-        raise NotImplementedError
-
-    def finish(self) -> dict[str, np.ndarray]:
-        raise NotImplementedError
-
-
-class AMPFeatures(Recorder):
-    """AMP's discriminator observation of each transition: Φ(s_t) and Φ(s_{t+1}), [T, M, amp_dim] each."""
-
-    def __init__(self, character: Character):
-        self.character = character
-
-    def begin(self, steps: int, num_envs: int, sim: BatchedSim) -> None:
-        d = amp_dim(self.character)
-        self.before = np.empty((steps, num_envs, d), np.float32)
-        self.after = np.empty_like(self.before)
-        self.current = amp_features(self.character, sim.kin_state())
-
-    def record(self, t: int, sim: BatchedSim, result: StepResult) -> None:
-        self.before[t] = self.current
-        self.after[t] = amp_features(self.character, result.kin)
-        self.current = self.after[t]
-
-    def after_reset(self, sim: BatchedSim, ids: np.ndarray) -> None:
-        self.current = self.current.copy()
-        self.current[ids] = amp_features(self.character, sim.kin_state()[ids])
-
-    def finish(self) -> dict[str, np.ndarray]:
-        return {"amp_obs": self.before, "amp_next_obs": self.after}
-
-
-class ImitationReward(Recorder):
-    """The tracking expert's reward r_t [T, M] (`workers.rewards`) and its terms, `reward/<term>` [T, M]."""
-
-    def __init__(self, character: Character, weights: dict[str, float] | None = None):
-        self.character = character
-        self.weights = dict(DEFAULT_WEIGHTS if weights is None else weights)
-
-    def begin(self, steps: int, num_envs: int, sim: BatchedSim) -> None:
-        self.reward = np.empty((steps, num_envs), np.float32)
-        self.terms: dict[str, np.ndarray] = {}
-
-    def record(self, t: int, sim: BatchedSim, result: StepResult) -> None:
-        r, terms = imitation_reward(self.character, result.kin, sim.reference_state(), self.weights)
-        self.reward[t] = r
-        for k, v in terms.items():
-            self.terms.setdefault(k, np.empty_like(self.reward))[t] = v
-
-    def finish(self) -> dict[str, np.ndarray]:
-        return {"reward": self.reward, **{f"reward/{k}": v for k, v in self.terms.items()}}
+from workers.types import Trajectory
 
 
 class RolloutWorker:
@@ -232,8 +174,6 @@ class RolloutWorker:
         steps, ending early where the character falls (no reset, no tracking-failure end). Episodes run
         `num_envs` at a time. Each is {"states" [L+1, B, 13], "actions" [L, A], "clip", "fell",
         "tracking_error": mean body-position error relative to the root (m)}."""
-        from workers.evaluation import relative_position_error
-
         sim, m = self.sim, self.num_envs
         clip_ids, max_steps = np.asarray(clip_ids, int), np.asarray(max_steps, int)
         out: list[dict[str, Any]] = []

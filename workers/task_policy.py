@@ -28,7 +28,7 @@ from workers.learners.vae import build_controller
 from workers.losses.task import goal_observation, task_terms
 from workers.models import body_state
 from workers.policies import Policy
-from workers.rollout import Recorder
+from workers.recorders import Recorder
 from workers.sim.env import BatchedSim, StepResult
 
 

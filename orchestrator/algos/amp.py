@@ -10,13 +10,13 @@ termination); there is no tracking termination, since AMP does not track the cli
 
 from __future__ import annotations
 
-from dataclasses import replace
 from typing import Any
 
 from orchestrator.algos.base import Component
 from orchestrator.algos.onpolicy import OnPolicy
 from orchestrator.components.amp import DiscriminatorActor
-from workers.rollout import AMPFeatures
+from workers.recorders import AMPFeatures
+from workers.sim.env import without_tracking_termination
 
 
 class AMP(OnPolicy):
@@ -33,7 +33,7 @@ class AMP(OnPolicy):
 
     @classmethod
     def sim_config(cls, cfg):
-        return replace(super().sim_config(cfg), tracking_error_m=0.0)
+        return without_tracking_termination(super().sim_config(cfg), keep_time_limit=True)
 
     def rewards_and_updates(self, trainer, trajectories: list[Any]) -> tuple[Any, dict[str, Any]]:
         """The discriminator scores the trajectories (style reward, Eq. 7, mixed by Eq. 4), then learns from them."""

@@ -37,7 +37,7 @@ if TYPE_CHECKING:
     from workers.learners.base import Weights
     from workers.motion.library import MotionLibrary
     from workers.policies import Policy
-    from workers.rollout import Recorder
+    from workers.recorders import Recorder
     from workers.sim.character import Character
     from workers.sim.env import SimConfig
 

@@ -28,9 +28,10 @@ from orchestrator.algos.base import Component, ReplayFed, UpdateSchedule
 from orchestrator.components.controlvae import VAEActor, WorldModelActor
 from orchestrator.components.replay import ReplayActor
 from orchestrator.evaluation.protocols import evaluate_controller
-from workers.balancing import FrameValues, TrackingReward
+from workers.balancing import FrameValues
 from workers.learners.vae import state_weight_vector
 from workers.policies import VAEPolicy
+from workers.recorders import TrackingReward
 
 
 class ControlVAE(ReplayFed):

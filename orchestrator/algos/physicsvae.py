@@ -80,7 +80,7 @@ class SimulationLayer(Offline):
 
 
 class PhysicsVAE(Offline):
-    sections = ("world_model", "vae", "offline")
+    sections = ("vae", "offline")  # the layer's network is its world_model stage's (algo.world_model there)
     needs = ("demos", "world_model")
     learner_key = "vae"
 

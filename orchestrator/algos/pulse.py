@@ -30,7 +30,8 @@ from orchestrator.components.replay import ReplayActor
 from orchestrator.evaluation.protocols import evaluate_controller
 from orchestrator.upstream import expert_weights
 from orchestrator.world import evaluation_sim_config
-from workers.distill import teacher_actions, tracking_success
+from workers.distill import teacher_actions
+from workers.evaluation.success import tracking_success
 from workers.learners.vae import build_controller
 from workers.models import body_state
 from workers.policies import VAEPolicy, expert_module
@@ -95,7 +96,7 @@ class Pulse(ReplayFed):
         def student(sim, bs):  # the encoder's mean given the reference's next state
             s = body_state.features(torch.from_numpy(bs))
             frames = sim.start_frame + sim.steps
-            ref_next = torch.from_numpy(library.features(sim.clip_id, frames + 1).astype(np.float32))
+            ref_next = torch.from_numpy(sim.reference_next_features().astype(np.float32))
             q, _ = controller.encode(s, ref_next)
             a = controller.act(s, q.mean).numpy()
             visited.append((bs.copy(), sim.clip_id.copy(), frames.copy(), a))

@@ -15,7 +15,7 @@ and PULSE distil.
 from __future__ import annotations
 
 from orchestrator.algos.onpolicy import OnPolicy
-from workers.rollout import ImitationReward
+from workers.recorders import ImitationReward
 
 
 class Tracker(OnPolicy):

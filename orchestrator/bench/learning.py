@@ -32,7 +32,7 @@ from matplotlib.figure import Figure
 from orchestrator.build import untracked_trainer
 from orchestrator.compose import compose, validate
 from orchestrator.world import evaluation_sim_config, load_library
-from workers.evaluation import time_until_fall, tracking_error
+from workers.evaluation.controller import time_until_fall, tracking_error
 from workers.learners.vae import build_controller
 
 # (metric, level, direction): reached when the metric is below (-1) or above (+1) the level.

@@ -29,7 +29,8 @@ from orchestrator.bench.sim import RawStepper, _setup, interleaved
 from workers.learners.vae import VAEConfig
 from workers.models.actor_critic import ActorCritic
 from workers.policies import GaussianPolicy, VAEPolicy
-from workers.rollout import AMPFeatures, ImitationReward, RolloutWorker
+from workers.recorders import AMPFeatures, ImitationReward
+from workers.rollout import RolloutWorker
 from workers.sim.env import SimConfig
 from workers.sim.features import StateLayout
 

@@ -17,9 +17,9 @@ from orchestrator.schema import Config
 from orchestrator.world import load_character_and_library, seed_of
 from workers.learners.discriminator import DiscriminatorBatch, DiscriminatorLearner
 from workers.motion.library import MotionLibrary
-from workers.replay import Trajectory
 from workers.sim.character import Character
 from workers.sim.features import amp_dim, amp_features
+from workers.types import Trajectory
 
 
 def reference_transitions(character: Character, library: MotionLibrary) -> np.ndarray:

@@ -11,10 +11,9 @@ from orchestrator.schema import Config
 from orchestrator.world import load_character_and_library, seed_of
 from workers.learners.base import Weights
 from workers.learners.vae import VAEBatch, VAELearner
-from workers.learners.world_model import WorldModelBatch, WorldModelLearner
+from workers.learners.world_model import WorldModelBatch, WorldModelLearner, build_world_model
 from workers.models import body_state
-from workers.models.world_model import WorldModel
-from workers.replay import StartBatch, WindowBatch
+from workers.types import StartBatch, WindowBatch
 
 
 class WorldModelActor(LearnerActor):
@@ -37,9 +36,7 @@ class VAEActor(LearnerActor):
         torch.manual_seed(seed_of(cfg, 3))
         _, self.library = load_character_and_library(cfg)
         wm = cfg.algo.world_model
-        world_model = WorldModel(
-            num_bodies, action_dim, wm.hidden, wm.activation, 1.0 / cfg.character.control_hz, wm.integrator
-        )
+        world_model = build_world_model(num_bodies, action_dim, wm, 1.0 / cfg.character.control_hz)
         self.learner = VAELearner(num_bodies, action_dim, cfg.algo.vae, world_model=world_model, seed=seed_of(cfg, 4))
         self.world_model_version = -1
 

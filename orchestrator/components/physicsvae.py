@@ -23,14 +23,8 @@ from orchestrator.upstream import Upstream, layer_state, load_demos
 from orchestrator.world import seed_of
 from workers.demos import DemoSet
 from workers.learners.vae import VAEBatch, VAELearner
-from workers.learners.world_model import WorldModelBatch, WorldModelLearner
+from workers.learners.world_model import WorldModelBatch, WorldModelConfig, WorldModelLearner, build_world_model
 from workers.models import body_state
-from workers.models.world_model import WorldModel
-
-
-def world_model_of(cfg: Config, num_bodies: int, action_dim: int) -> WorldModel:
-    wm = cfg.algo.world_model
-    return WorldModel(num_bodies, action_dim, wm.hidden, wm.activation, 1.0 / cfg.character.control_hz, wm.integrator)
 
 
 class OfflineActor(LearnerActor):
@@ -124,12 +118,15 @@ class PhysicsVAEActor(OfflineActor):
         demos: DemoSet | Upstream,
         num_bodies: int,
         action_dim: int,
-        layer: dict[str, Any] | Upstream,
+        layer: tuple[WorldModelConfig, dict[str, Any]] | Upstream,
     ):
+        """`layer`: the world_model stage whose frozen layer this VAE learns through (its network's size is that
+        stage's `algo.world_model`, read from it), or that config and state dict."""
         self.window = cfg.algo.vae.rollout_steps
         super().__init__(cfg, demos, 3)
-        self.world_model = world_model_of(cfg, num_bodies, action_dim)
-        self.world_model.load_state_dict(layer if isinstance(layer, dict) else layer_state(layer))
+        layer_config, layer_weights = layer if isinstance(layer, tuple) else (layer.config().algo.world_model, layer)
+        self.world_model = build_world_model(num_bodies, action_dim, layer_config, 1.0 / cfg.character.control_hz)
+        self.world_model.load_state_dict(layer_weights if isinstance(layer_weights, dict) else layer_state(layer))
         self.learner = VAELearner(
             num_bodies, action_dim, cfg.algo.vae, world_model=self.world_model, seed=seed_of(cfg, 4)
         )

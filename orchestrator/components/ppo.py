@@ -17,7 +17,7 @@ from orchestrator.components.base import LearnerActor
 from orchestrator.schema import Config
 from orchestrator.world import seed_of
 from workers.learners.ppo import PPOLearner, Rollout
-from workers.replay import Trajectory
+from workers.types import Trajectory
 
 
 def rollout_of(trajs: tuple[Trajectory, ...], rewards: list[np.ndarray] | None) -> Rollout:

@@ -21,7 +21,7 @@ from workers.distill import teacher_actions
 from workers.learners.vae import VAEBatch, VAELearner
 from workers.models import body_state
 from workers.policies import expert_module
-from workers.replay import WindowBatch
+from workers.types import WindowBatch
 
 
 class PulseActor(LearnerActor):

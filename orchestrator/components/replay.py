@@ -11,7 +11,8 @@ from orchestrator.schema import Config
 from orchestrator.world import load_character_and_library, seed_of
 from workers.balancing import frame_sums, library_rows
 from workers.motion.library import MotionLibrary
-from workers.replay import ReplayBuffer, StartBatch, Trajectory, WindowBatch
+from workers.replay import ReplayBuffer
+from workers.types import StartBatch, Trajectory, WindowBatch
 
 
 class ReplayActor(ReplayBuffer):

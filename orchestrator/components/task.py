@@ -20,9 +20,9 @@ from orchestrator.schema import Config
 from orchestrator.upstream import StageError, Upstream, existing_run, layer_state
 from orchestrator.world import seed_of
 from workers.learners.task import GoalBuffer, TaskLearner
-from workers.models.world_model import WorldModel
-from workers.replay import Trajectory
+from workers.learners.world_model import build_world_model
 from workers.task_policy import skill_controller
+from workers.types import Trajectory
 
 
 def skill_model(up: Upstream, world_model: bool) -> dict[str, Any]:
@@ -71,9 +71,7 @@ class TaskActor(LearnerActor):
         payload = skill_model(skill, world_model=True)  # read here: a restarted actor needs nothing from the driver
         controller = skill_controller(payload, num_bodies, action_dim)
         wm_cfg, wm_state = payload["world_model"]
-        wm = WorldModel(
-            num_bodies, action_dim, wm_cfg.hidden, wm_cfg.activation, 1.0 / cfg.character.control_hz, wm_cfg.integrator
-        )
+        wm = build_world_model(num_bodies, action_dim, wm_cfg, 1.0 / cfg.character.control_hz)
         wm.load_state_dict(wm_state)
         task = cfg.algo.task
         self.learner = TaskLearner(controller, wm, action_dim, task, payload["prior_action"])

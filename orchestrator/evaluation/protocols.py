@@ -35,8 +35,8 @@ from orchestrator.evaluation import video
 from orchestrator.schema import Config
 from orchestrator.tracking.base import RunLogger
 from orchestrator.world import evaluation_sim_config
-from workers.evaluation import random_sampling, time_until_fall, tracking_error
-from workers.imitation_eval import pose_error_episodes
+from workers.evaluation.controller import random_sampling, time_until_fall, tracking_error
+from workers.evaluation.imitation import pose_error_episodes
 from workers.learners.base import Weights
 from workers.learners.vae import build_controller
 from workers.models.vae import VAEController

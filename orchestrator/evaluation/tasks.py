@@ -1,4 +1,4 @@
-"""A task run's evaluation in the loop: `workers.task_eval` on the current task policy, as metrics, JSON
+"""A task run's evaluation in the loop: `workers.evaluation.tasks` on the current task policy, as metrics, JSON
 and a figure (the reward over time, and the roots' paths with their goals)."""
 
 from __future__ import annotations
@@ -13,9 +13,9 @@ from orchestrator.evaluation.protocols import Progress, jsonable
 from orchestrator.schema import Config
 from orchestrator.tracking.base import RunLogger
 from orchestrator.world import evaluation_sim_config
+from workers.evaluation.tasks import evaluate_task_policy
 from workers.motion.library import MotionLibrary
 from workers.sim.character import Character
-from workers.task_eval import evaluate_task_policy
 from workers.task_policy import TaskRolloutPolicy
 
 

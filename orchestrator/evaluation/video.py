@@ -1,6 +1,6 @@
 """Evaluation videos: MP4s of recorded rollouts, rendered offscreen in a child process and logged to the run.
 
-`controller_videos` and `policy_videos` record what to show (`workers.render`, a second or two of
+`controller_videos` and `policy_videos` record what to show (`workers.evaluation.render`, a second or two of
 simulation) and return a `RenderJob`: a child process renders and encodes the MP4s (imageio's ffmpeg
 writer: H.264, yuv420p, playable in the MLflow UI) while the evaluation's other protocols run, and
 `RenderJob.log` waits for them and logs them (`videos/<evaluation name>/` in `orchestrator.evaluation.protocols`).
@@ -33,7 +33,7 @@ from typing import TYPE_CHECKING
 import mujoco
 import numpy as np
 
-from workers.render import Recording
+from workers.evaluation.render import Recording
 
 if TYPE_CHECKING:
     from orchestrator.schema import Config
@@ -89,7 +89,7 @@ def controller_videos(
     recorded now and rendering in the background (an empty job with `eval.video=false` or without GL)."""
     # Imported here, not above: the rendering child runs this module and needs none of it (nor torch).
     from orchestrator.world import evaluation_sim_config
-    from workers.render import record_fall_rollouts, record_tracking
+    from workers.evaluation.render import record_fall_rollouts, record_tracking
 
     if not videos_enabled(cfg, run):
         return RenderJob([], 0.0, 0, 0, run)
@@ -105,7 +105,7 @@ def policy_videos(
     """One episode of a PPO policy's deterministic actions from a reference start, its reference as a ghost,
     recorded now and rendering in the background (an empty job with `eval.video=false` or without GL)."""
     from orchestrator.world import evaluation_sim_config
-    from workers.render import record_policy_episode
+    from workers.evaluation.render import record_policy_episode
 
     if not videos_enabled(cfg, run):
         return RenderJob([], 0.0, 0, 0, run)
@@ -288,7 +288,7 @@ def encode(frames: Iterable[np.ndarray], path: Path, fps: float) -> int:
 
 def _child(job: Path, out_dir: Path) -> None:
     """The render process: every video of a job written by `_write_job`, rendered with this MUJOCO_GL."""
-    from workers.render import render_frames
+    from workers.evaluation.render import render_frames
 
     spec = json.loads((job / "job.json").read_text())
     poses = np.load(job / "poses.npz")

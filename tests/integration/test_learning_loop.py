@@ -19,7 +19,7 @@ from mlflow.tracking import MlflowClient
 from orchestrator.build import run
 from orchestrator.compose import validate
 from orchestrator.world import evaluation_sim_config, load_character_and_library
-from workers.evaluation import tracking_error
+from workers.evaluation.controller import tracking_error
 from workers.learners.vae import build_controller
 
 CONF = Path(__file__).resolve().parents[2] / "conf"

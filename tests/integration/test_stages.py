@@ -57,7 +57,9 @@ def test_an_identical_stage_is_reused_and_a_changed_alpha_is_not(pipeline):
     assert same.reused and same.run_id == runs_of(uri, "physicsvae")[0].info.run_id
     assert "vae" in same.checkpoint()  # its artifacts are found and load
     assert len(runs_of(uri, "physicsvae")) == 1
-    changed = stages.ensure("pv", "physicsvae algo.vae.alpha=0.003", cfg, uri, root / "alpha", "default", train_stage, print)
+    changed = stages.ensure(
+        "pv", "physicsvae algo.vae.alpha=0.003", cfg, uri, root / "alpha", "default", train_stage, print
+    )
     assert not changed.reused and changed.stage_hash != same.stage_hash
     assert len(runs_of(uri, "physicsvae")) == 2
     assert len(runs_of(uri, "tracker")) == 1 and len(runs_of(uri, "world_model")) == 1  # upstream reused
@@ -142,7 +144,7 @@ def test_physicsvae_alpha_pulls_the_simulated_next_states_toward_the_demos(pipel
         vae = dataclasses.replace(cfg.algo.vae, alpha=alpha, lr=1e-3)
         c = dataclasses.replace(cfg, algo=dataclasses.replace(cfg.algo, vae=vae, offline=offline))
         torch.manual_seed(0)
-        actor = PhysicsVAEActor(c, demos, 15, 28, layer.learner.model.state_dict())
+        actor = PhysicsVAEActor(c, demos, 15, 28, (wm_cfg.algo.world_model, layer.learner.model.state_dict()))
         for _ in range(10):
             actor.train_epoch()
         results[alpha] = actor.validate()
@@ -229,7 +231,9 @@ def test_only_a_finished_run_is_reused(pipeline):
 def test_a_controlvae_posterior_can_be_the_expert(pipeline):
     """The second expert option: demos from a ControlVAE run's posterior (z = μ_q), by `algo.needs.expert`."""
     cfg, uri, root = pipeline["cfg"], pipeline["uri"], pipeline["root"]
-    up = stages.ensure("demos", "demos algo.needs.expert=controlvae", cfg, uri, root / "cv", "default", train_stage, print)
+    up = stages.ensure(
+        "demos", "demos algo.needs.expert=controlvae", cfg, uri, root / "cv", "default", train_stage, print
+    )
     demos, manifest = load_demos(up)
     assert manifest["expert_algo"] == "controlvae" and demos.num_episodes == 2
     assert np.isfinite(demos.actions).all() and manifest["expert"]["tracking_error_mean"] > 0

@@ -55,7 +55,9 @@ def test_the_decoder_the_task_used_is_the_skill_stages_last_checkpoint(task_run)
     """The task run's checkpoint holds only the task policy; the skill it read is bit-identical to the stage's."""
     uri, root = task_run["uri"], task_run["root"]
     (skill,) = runs_of(uri, "controlvae")
-    up = stages.ensure("skill", f"run:{skill.info.run_id}", task_run["cfg"], uri, root / "again", "default", train_stage)
+    up = stages.ensure(
+        "skill", f"run:{skill.info.run_id}", task_run["cfg"], uri, root / "again", "default", train_stage
+    )
     payload = skill_model(up, world_model=True)
     stage_state = up.checkpoint()["vae"]["learner"]["module"]
     assert all(torch.equal(payload["module"][k], stage_state[k]) for k in stage_state)

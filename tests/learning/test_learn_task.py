@@ -58,9 +58,9 @@ def test_task_learner_lowers_heading_loss(trajectories, world_model, vae_runs):
 def test_model_based_heading_lowers_the_heading_error_in_the_simulator(character, walk_run, world_model, vae_runs):
     """ControlVAE §4.2 end to end: the task policy collects in the simulator (B_g), learns only through the frozen
     world model, and is judged in the simulator, from fixed starts with fixed goals, before and after."""
+    from workers.evaluation.tasks import evaluate_task_policy
     from workers.learners.task import GoalBuffer
     from workers.rollout import RolloutWorker
-    from workers.task_eval import evaluate_task_policy
     from workers.task_policy import TaskRolloutPolicy
 
     torch.manual_seed(0)

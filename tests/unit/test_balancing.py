@@ -8,7 +8,6 @@ import torch
 
 from workers.balancing import (
     FrameValues,
-    TrackingReward,
     discounted_returns,
     frame_sums,
     library_rows,
@@ -18,8 +17,10 @@ from workers.learners.base import Weights
 from workers.learners.vae import VAEConfig, build_controller, state_weight_vector
 from workers.motion.library import MotionLibrary, balancing_weights
 from workers.policies import VAEPolicy
-from workers.replay import ReplayBuffer, Trajectory
+from workers.recorders import TrackingReward
+from workers.replay import ReplayBuffer
 from workers.rollout import RolloutWorker
+from workers.types import Trajectory
 
 SMALL = VAEConfig(latent_dim=8, encoder_hidden=(32,), policy="mlp", policy_hidden=(64,))
 

@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 import torch
 
-from workers.distill import teacher_actions, tracking_steps, tracking_success
-from workers.imitation_eval import reference_actor
+from workers.distill import teacher_actions
+from workers.evaluation.imitation import reference_actor
+from workers.evaluation.success import tracking_steps, tracking_success
 from workers.learners.ppo import PPOConfig, build_actor_critic
 from workers.models import body_state
 from workers.policies import GaussianPolicy, observation_dim

@@ -1,10 +1,12 @@
 """The batched simulator: reset, step, terminations, determinism."""
 
+from dataclasses import replace
+
 import mujoco
 import numpy as np
 import pytest
 
-from workers.sim.env import BatchedSim, SimConfig
+from workers.sim.env import BatchedSim, SimConfig, without_tracking_termination
 
 
 def test_reset_is_reference_state_initialisation(character, walk_run):
@@ -117,3 +119,21 @@ def test_batch_matches_a_loop_over_mjdata(character, walk_run):
         np.testing.assert_array_equal(sim.qacc_warmstart, np.stack([d.qacc_warmstart for d in datas]))
         fell = [d.ncon > 0 and bool(sim._fall_geom[d.contact.geom].any()) for d in datas]
         np.testing.assert_array_equal(r.fell, fell)
+
+
+def test_without_tracking_termination_keeps_everything_else():
+    base = SimConfig(control_hz=20.0, sim_hz=120.0, tracking_error_m=0.3, max_episode_steps=50, end_on_fall=False)
+    evaluation = without_tracking_termination(base)
+    assert evaluation == replace(base, tracking_error_m=0.0, max_episode_steps=0)
+    assert without_tracking_termination(base, keep_time_limit=True) == replace(base, tracking_error_m=0.0)
+    assert without_tracking_termination() == replace(SimConfig(), tracking_error_m=0.0, max_episode_steps=0)
+    assert base.tracking_error_m == 0.3 and base.max_episode_steps == 50  # the given config is left as it was
+
+
+def test_reference_next_features_is_the_library_one_frame_ahead(character, walk_run):
+    sim = BatchedSim(character, walk_run, num_envs=4, seed=2)
+    sim.step(character.qpos_to_action(sim.reference_state().qpos))
+    expected = walk_run.features(sim.clip_id, sim.start_frame + sim.steps + 1)
+    np.testing.assert_array_equal(sim.reference_next_features(), expected)
+    ids = np.array([3, 1])
+    np.testing.assert_array_equal(sim.reference_next_features(ids), expected[ids])

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from workers.evaluation import (
+from workers.evaluation.controller import (
     fall_start,
     random_sampling,
     reference_targets,

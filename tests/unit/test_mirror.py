@@ -24,7 +24,7 @@ import numpy as np
 import pytest
 import torch
 
-from workers.evaluation import tracking_error
+from workers.evaluation.controller import tracking_error
 from workers.models import body_state
 from workers.motion.clip import mirror_qpos
 from workers.motion.library import MotionLibrary

@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from workers.pose_error import dtw_pose_error, per_frame_pose_error, pose_error_matrix, relative_positions
+from workers.evaluation.pose_error import dtw_pose_error, per_frame_pose_error, pose_error_matrix, relative_positions
 from workers.sim import rotations as rot
 from workers.sim.features import heading_inverse
 

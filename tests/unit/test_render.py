@@ -19,11 +19,17 @@ from orchestrator.evaluation import video
 from orchestrator.evaluation.protocols import evaluate_controller
 from orchestrator.schema import Config
 from orchestrator.tracking.base import NoOpLogger
-from workers.evaluation import fall_start, time_until_fall
-from workers.imitation_eval import reference_actor
+from workers.evaluation.controller import fall_start, time_until_fall
+from workers.evaluation.imitation import reference_actor
+from workers.evaluation.render import (
+    FALL_TAIL_S,
+    Recording,
+    record_fall_rollouts,
+    record_policy_episode,
+    record_tracking,
+)
 from workers.learners.base import Weights
 from workers.learners.vae import VAEConfig, build_controller
-from workers.render import FALL_TAIL_S, Recording, record_fall_rollouts, record_policy_episode, record_tracking
 
 SMALL = VAEConfig(latent_dim=8, encoder_hidden=(32,), policy="mlp", policy_hidden=(64,))
 HZ = 30

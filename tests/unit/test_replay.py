@@ -13,7 +13,8 @@ import copy
 import numpy as np
 import pytest
 
-from workers.replay import ReplayBuffer, Trajectory
+from workers.replay import ReplayBuffer
+from workers.types import Trajectory
 
 B, A = 2, 3
 RESET_JUMP = 1000

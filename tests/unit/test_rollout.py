@@ -135,7 +135,7 @@ def test_one_worker_serves_the_vae_controller_and_the_actor_critic(character, wa
     """The same RolloutWorker runs either policy; PPO's extras and AMP's Φ come with the actor-critic's."""
     from workers.models.actor_critic import ActorCritic
     from workers.policies import GaussianPolicy
-    from workers.rollout import AMPFeatures, ImitationReward
+    from workers.recorders import AMPFeatures, ImitationReward
     from workers.sim.features import amp_dim
 
     vae = make_worker(character, walk_run, weights).collect(10)

@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 import torch
 
+from workers.evaluation.tasks import evaluate_task_policy
 from workers.learners.task import TaskConfig, task_policy
 from workers.learners.vae import VAEConfig, build_controller
 from workers.losses.task import task_terms
 from workers.rollout import RolloutWorker
-from workers.task_eval import evaluate_task_policy
 from workers.task_policy import TaskRolloutPolicy
 
 SKILL = VAEConfig(latent_dim=8, encoder_hidden=(32,), policy="mlp", policy_hidden=(32,))

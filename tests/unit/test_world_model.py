@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from workers.learners.base import NonFiniteWeightsError, Schedule
-from workers.learners.world_model import WorldModelBatch, WorldModelConfig, WorldModelLearner
+from workers.learners.world_model import WorldModelBatch, WorldModelConfig, WorldModelLearner, build_world_model
 from workers.losses.world_model import world_model_loss
 from workers.models import body_state as B
 
@@ -99,3 +99,16 @@ def test_schedules():
     assert decay(49) == 0.01 and decay(50) == pytest.approx(0.007) and decay(10**5) == 1e-3
     with pytest.raises(ValueError, match="unknown schedule kind"):
         Schedule(1.0, kind="cosine")
+
+
+def test_build_world_model_is_the_learners_network():
+    config = WorldModelConfig(hidden=(16, 8), activation="relu", integrator="midpoint")
+    torch.manual_seed(0)
+    learner = WorldModelLearner(15, 28, 1 / 20, config)
+    torch.manual_seed(0)
+    model = build_world_model(15, 28, config, 1 / 20)
+    assert (model.dt, model.integrator) == (learner.model.dt, learner.model.integrator) == (1 / 20, "midpoint")
+    mine, theirs = model.state_dict(), learner.model.state_dict()
+    assert mine.keys() == theirs.keys()
+    for k in mine:
+        torch.testing.assert_close(mine[k], theirs[k])  # same layers, same initialisation under one seed

@@ -36,6 +36,12 @@ class WorldModelConfig:
             raise ValueError(f"world_model.lr must be positive, got {self.lr}")
 
 
+def build_world_model(num_bodies: int, action_dim: int, config: WorldModelConfig, dt: float) -> WorldModel:
+    """The network a WorldModelConfig describes, predicting dt seconds (one control step) ahead: the
+    learner's, and the frozen copies the VAE and task learners are given, are built alike."""
+    return WorldModel(num_bodies, action_dim, config.hidden, config.activation, dt, config.integrator)
+
+
 @dataclass
 class WorldModelBatch:
     """Recorded trajectories: body states [N, T+1, B, 13] and the actions between them [N, T, A]."""
@@ -50,7 +56,7 @@ class WorldModelLearner(Learner):
     def __init__(self, num_bodies: int, action_dim: int, dt: float, config: WorldModelConfig | None = None):
         self.config = config or WorldModelConfig()
         c = self.config
-        self.model = WorldModel(num_bodies, action_dim, c.hidden, c.activation, dt, c.integrator)
+        self.model = build_world_model(num_bodies, action_dim, c, dt)
         super().__init__(self.model, make_optimizer(c.optimizer, self.model.parameters(), c.lr), c.grad_clip)
 
     def _tensors(self, batch: WorldModelBatch) -> tuple[torch.Tensor, torch.Tensor]:

@@ -61,7 +61,7 @@ further than `tracking_error_m` from the reference's for `tracking_error_s`), `c
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import cached_property
 
 import mujoco
@@ -111,6 +111,17 @@ class SimConfig:
                 f"sim_hz ({self.sim_hz}) must be a positive whole multiple of control_hz ({self.control_hz})"
             )
         return int(round(ratio))
+
+
+def without_tracking_termination(config: SimConfig | None = None, keep_time_limit: bool = False) -> SimConfig:
+    """`config` (default `SimConfig()`) with no end on tracking failure (`tracking_error_m` = 0) and,
+    unless `keep_time_limit`, no episode cap (`max_episode_steps` = 0).
+
+    For runs that do not hold the character to its reference: the evaluations, which run each
+    episode for their own number of steps, and AMP, whose policy imitates a style, not the clip."""
+    config = config or SimConfig()
+    time_limit = config.max_episode_steps if keep_time_limit else 0
+    return replace(config, tracking_error_m=0.0, max_episode_steps=time_limit)
 
 
 @dataclass
@@ -336,6 +347,13 @@ class BatchedSim:
     def reference_state(self) -> KinState:
         """The reference state at each environment's current time."""
         return self.library.state(self.clip_id, self.start_frame + self.steps)
+
+    def reference_next_features(self, env_ids: np.ndarray | None = None) -> np.ndarray:
+        """s̃_{t+1} [N, D] (rows `env_ids` only, when given): the reference's state features one control
+        step after each environment's current time, as the library stores them (what a tracking policy
+        observes and the VAE's posterior reads)."""
+        ids = slice(None) if env_ids is None else env_ids
+        return self.library.features(self.clip_id[ids], self.start_frame[ids] + self.steps[ids] + 1)
 
     @property
     def qacc_warmstart(self) -> np.ndarray:

@@ -83,10 +83,7 @@ class _Tracking:
 
     def observe(self, state: np.ndarray, env_ids: np.ndarray | None = None) -> np.ndarray:
         """Observations [len(env_ids), 2D] from the states s of those environments."""
-        sim = self.sim
-        ids = slice(None) if env_ids is None else env_ids
-        ref_next = self.library.features(sim.clip_id[ids], sim.start_frame[ids] + sim.steps[ids] + 1)
-        return imitation_observation(state, ref_next)
+        return imitation_observation(state, self.sim.reference_next_features(env_ids))
 
     def step(self, actions: np.ndarray) -> tuple[StepResult, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """(result, observations [N, 2D], rewards [N], terminated [N], truncated [N]) of one control step."""

@@ -1,4 +1,4 @@
-"""The papers' evaluation protocols, run in the batched simulator.
+"""A VAE controller's evaluation: PhysicsVAE's and ControlVAE's protocols, run in the batched simulator.
 
 - `time_until_fall` (PhysicsVAE Fig. 9, §5.5.1): every rollout starts from one
   fixed reference state, z is drawn from the prior at every control step, and a
@@ -19,7 +19,6 @@ Actions are the policy's mean (no exploration noise).
 from __future__ import annotations
 
 import contextlib
-import dataclasses
 from collections.abc import Callable, Iterator
 
 import numpy as np
@@ -29,7 +28,7 @@ from workers.models import body_state
 from workers.models.vae import VAEController
 from workers.motion.library import MotionLibrary
 from workers.sim.character import Character
-from workers.sim.env import BatchedSim, SimConfig
+from workers.sim.env import BatchedSim, SimConfig, without_tracking_termination
 
 DEFAULT_START_CLIP = "humanoid3d_walk"
 
@@ -53,10 +52,6 @@ def _inference(controller: torch.nn.Module | None) -> Iterator[None]:
 def _features(sim: BatchedSim) -> torch.Tensor:
     """s [N, D] of the simulated characters, as the learners compute it (float32 body states)."""
     return body_state.features(torch.from_numpy(body_state.pack(sim.kin_state())))
-
-
-def _no_tracking_termination(config: SimConfig | None) -> SimConfig:
-    return dataclasses.replace(config or SimConfig(), tracking_error_m=0.0, max_episode_steps=0)
 
 
 def reference_targets(library: MotionLibrary) -> Policy:
@@ -115,7 +110,7 @@ def time_until_fall(
     """
     if num_rollouts < 1 or max_seconds <= 0:
         raise ValueError(f"need num_rollouts >= 1 and max_seconds > 0, got {num_rollouts} and {max_seconds}")
-    config = _no_tracking_termination(sim_config)
+    config = without_tracking_termination(sim_config)
     clip, frame = fall_start(library, start)
     sim = BatchedSim(character, library, num_rollouts, config, seed=seed)
     sim.reset(np.arange(num_rollouts), np.full(num_rollouts, clip), np.full(num_rollouts, frame))
@@ -187,7 +182,7 @@ def tracking_error(
     """
     if controller is None and policy is None:
         raise ValueError("tracking_error needs a controller or a policy")
-    config = _no_tracking_termination(sim_config)
+    config = without_tracking_termination(sim_config)
     clips, starts, steps = tracking_segments(library, clip_seconds, config.control_hz)
     n = len(clips)
     sim = BatchedSim(character, library, n, config, seed=seed)
@@ -199,7 +194,7 @@ def tracking_error(
                 actions = np.asarray(policy(sim))
             else:
                 s = _features(sim)
-                ref_next = library.features(sim.clip_id, sim.start_frame + sim.steps + 1)
+                ref_next = sim.reference_next_features()
                 posterior, _ = controller.encode(s, torch.from_numpy(ref_next.astype(np.float32)))
                 actions = controller.act(s, posterior.mean).numpy()
             result = sim.step(actions)
@@ -232,7 +227,7 @@ def random_sampling(
     """
     if num_rollouts < 1 or steps < 1:
         raise ValueError(f"need num_rollouts >= 1 and steps >= 1, got {num_rollouts} and {steps}")
-    config = _no_tracking_termination(sim_config)
+    config = without_tracking_termination(sim_config)
     rng = np.random.default_rng(seed)
     usable = np.ones(library.total_frames, bool)
     usable[(library.offsets + library.num_frames - 1)[~library.loop & (library.num_frames > 1)]] = False

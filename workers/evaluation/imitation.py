@@ -6,7 +6,7 @@ initialisation, as in training), with the policy's deterministic action, for up
 to `max_seconds` or until the character falls (or a one-shot clip ends). Each
 episode's simulated poses are compared with the reference clip over the same
 steps, after aligning the two sequences by dynamic time warping with Eq. 10 as
-the cost (`workers.pose_error`): positions of every body relative to the root,
+the cost (`workers.evaluation.pose_error`): positions of every body relative to the root,
 in each frame's heading frame (so a character that walks the clip's gait but
 drifts in heading is judged by its pose), mean over bodies, metres.
 
@@ -17,15 +17,14 @@ growing per-frame error.
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Callable
 
 import numpy as np
 
+from workers.evaluation.pose_error import dtw_pose_error, per_frame_pose_error, relative_positions
 from workers.motion.library import MotionLibrary
-from workers.pose_error import dtw_pose_error, per_frame_pose_error, relative_positions
 from workers.sim.character import Character
-from workers.sim.env import BatchedSim, SimConfig
+from workers.sim.env import BatchedSim, SimConfig, without_tracking_termination
 from workers.sim.features import heading_inverse
 from workers.types import KinState
 
@@ -55,7 +54,7 @@ def pose_error_episodes(
     """
     from workers.models import body_state
 
-    config = dataclasses.replace(sim_config or SimConfig(), tracking_error_m=0.0, max_episode_steps=0)
+    config = without_tracking_termination(sim_config)
     sim = BatchedSim(character, library, num_episodes, config, seed=seed)
     steps = max(1, int(round(max_seconds * config.control_hz)))
     start_clip, start_frame = sim.clip_id.copy(), sim.start_frame.copy()

@@ -1,10 +1,10 @@
 """Evaluation videos: the rollouts to show, recorded as qpos per control step, and their offscreen rendering.
 
 Recording (simulation, no GL):
-- `record_fall_rollouts`: time-until-fall rollouts as `workers.evaluation.time_until_fall` runs them
+- `record_fall_rollouts`: time-until-fall rollouts as `workers.evaluation.controller.time_until_fall` runs them
   (the fixed standing start, z from the prior every control step), each cut one second after its
   first fall.
-- `record_tracking`: one clip tracked with the posterior, as `workers.evaluation.tracking_error` does,
+- `record_tracking`: one clip tracked with the posterior, as `workers.evaluation.controller.tracking_error` does,
   with the reference's qpos beside it (drawn as a ghost).
 - `record_policy_episode`: one episode of an actor (a PPO policy's mean action) from a reference start,
   with its reference, until it falls or the clip ends.
@@ -83,12 +83,12 @@ def record_fall_rollouts(
     """
     import torch
 
-    from workers.evaluation import _features, _inference, _no_tracking_termination, fall_start
-    from workers.sim.env import BatchedSim
+    from workers.evaluation.controller import _features, _inference, fall_start
+    from workers.sim.env import BatchedSim, without_tracking_termination
 
     if num_rollouts < 1:
         return []
-    config = _no_tracking_termination(sim_config)
+    config = without_tracking_termination(sim_config)
     clip, frame = fall_start(library)
     sim = BatchedSim(character, library, num_rollouts, config, seed=seed)
     sim.reset(np.arange(num_rollouts), np.full(num_rollouts, clip), np.full(num_rollouts, frame))
@@ -123,10 +123,10 @@ def record_tracking(
     `tracking_error` tracks a segment, for up to `max_seconds` (a one-shot clip: until its last frame)."""
     import torch
 
-    from workers.evaluation import _features, _inference, _no_tracking_termination, fall_start
-    from workers.sim.env import BatchedSim
+    from workers.evaluation.controller import _features, _inference, fall_start
+    from workers.sim.env import BatchedSim, without_tracking_termination
 
-    config = _no_tracking_termination(sim_config)
+    config = without_tracking_termination(sim_config)
     c = library.clip_id(clip) if clip is not None else fall_start(library)[0]
     steps = _steps(library, c, max_seconds, config.control_hz)
     sim = BatchedSim(character, library, 1, config, seed=seed)
@@ -135,7 +135,7 @@ def record_tracking(
     with _inference(controller):
         for _ in range(steps):
             s = _features(sim)
-            ref_next = library.features(sim.clip_id, sim.start_frame + sim.steps + 1)
+            ref_next = sim.reference_next_features()
             posterior, _ = controller.encode(s, torch.from_numpy(ref_next.astype(np.float32)))
             result = sim.step(controller.act(s, posterior.mean).numpy())
             qpos.append(result.kin.qpos[0])
@@ -155,9 +155,9 @@ def record_policy_episode(
     start drawn by the simulator, with its reference, until `max_seconds`, `FALL_TAIL_S` after a fall or the
     clip's end."""
     from workers.models import body_state
-    from workers.sim.env import BatchedSim
+    from workers.sim.env import BatchedSim, without_tracking_termination
 
-    config = dataclasses.replace(sim_config or _sim_config(), tracking_error_m=0.0, max_episode_steps=0)
+    config = without_tracking_termination(sim_config)
     sim = BatchedSim(character, library, 1, config, seed=seed)
     steps = max(1, int(round(max_seconds * config.control_hz)))
     tail = int(round(FALL_TAIL_S * config.control_hz))
@@ -176,12 +176,6 @@ def record_policy_episode(
             break
         bs = body_state.pack(result.kin)
     return Recording(f"policy-{_slug(library.names[int(sim.clip_id[0])])}", np.stack(qpos), np.stack(ref), sim.model)
-
-
-def _sim_config() -> SimConfig:
-    from workers.sim.env import SimConfig
-
-    return SimConfig()
 
 
 def _steps(library: MotionLibrary, clip: int, seconds: float, control_hz: float) -> int:

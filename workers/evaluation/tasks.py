@@ -32,7 +32,7 @@ from workers.losses.task import task_loss
 from workers.models import body_state
 from workers.motion.library import MotionLibrary
 from workers.sim.character import Character
-from workers.sim.env import BatchedSim, SimConfig
+from workers.sim.env import BatchedSim, SimConfig, without_tracking_termination
 from workers.task_policy import TaskRolloutPolicy
 
 
@@ -46,7 +46,7 @@ def evaluate_task_policy(
     seed: int = 0,
 ) -> dict[str, Any]:
     """Metrics and curves of the configured `policy` (skill set, weights loaded); see the module docstring."""
-    config = replace(sim_config or SimConfig(), end_on_fall=True, tracking_error_m=0.0, max_episode_steps=0)
+    config = replace(without_tracking_termination(sim_config), end_on_fall=True)
     sim = BatchedSim(character, library, num_goals, config, seed=seed)
     task = policy.config.task
     stochastic, policy.stochastic = policy.stochastic, False

@@ -1,0 +1,113 @@
+"""What a rollout worker records beyond states and actions: one `Recorder` per quantity a learner needs.
+
+The rollout worker (`workers.rollout`) calls each recorder at the start of a
+collect (`begin`), after every control step (`record`), after resets and clip
+switches of some environments (`after_reset`, `after_switch`, where defined) and
+at the end (`finish`), whose arrays [T, M, ...] go into the trajectory's extras.
+
+- `AMPFeatures`: AMP's discriminator observation Φ(s_t), Φ(s_{t+1}) (AMP §5.3).
+- `ImitationReward`: the tracking expert's DeepMimic-style reward and its terms
+  (`workers.rewards`).
+- `TrackingReward`: ControlVAE's Eq. 20 reward of each collected state against its
+  reference, which data balancing reads (`workers.balancing`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from workers.balancing import tracking_reward
+from workers.rewards import DEFAULT_WEIGHTS, imitation_reward
+from workers.sim.character import Character
+from workers.sim.env import BatchedSim, StepResult
+from workers.sim.features import amp_dim, amp_features, state_features
+
+
+class Recorder:
+    """Records arrays [T, M, ...] alongside the trajectory, from each step's result."""
+
+    def begin(self, steps: int, num_envs: int, sim: BatchedSim) -> None:
+        raise NotImplementedError
+
+    def record(self, t: int, sim: BatchedSim, result: StepResult) -> None:
+        raise NotImplementedError
+
+    def finish(self) -> dict[str, np.ndarray]:
+        raise NotImplementedError
+
+
+class AMPFeatures(Recorder):
+    """AMP's discriminator observation of each transition: Φ(s_t) and Φ(s_{t+1}), [T, M, amp_dim] each."""
+
+    def __init__(self, character: Character):
+        self.character = character
+
+    def begin(self, steps: int, num_envs: int, sim: BatchedSim) -> None:
+        d = amp_dim(self.character)
+        self.before = np.empty((steps, num_envs, d), np.float32)
+        self.after = np.empty_like(self.before)
+        self.current = amp_features(self.character, sim.kin_state())
+
+    def record(self, t: int, sim: BatchedSim, result: StepResult) -> None:
+        self.before[t] = self.current
+        self.after[t] = amp_features(self.character, result.kin)
+        self.current = self.after[t]
+
+    def after_reset(self, sim: BatchedSim, ids: np.ndarray) -> None:
+        self.current = self.current.copy()
+        self.current[ids] = amp_features(self.character, sim.kin_state()[ids])
+
+    def finish(self) -> dict[str, np.ndarray]:
+        return {"amp_obs": self.before, "amp_next_obs": self.after}
+
+
+class ImitationReward(Recorder):
+    """The tracking expert's reward r_t [T, M] (`workers.rewards`) and its terms, `reward/<term>` [T, M]."""
+
+    def __init__(self, character: Character, weights: dict[str, float] | None = None):
+        self.character = character
+        self.weights = dict(DEFAULT_WEIGHTS if weights is None else weights)
+
+    def begin(self, steps: int, num_envs: int, sim: BatchedSim) -> None:
+        self.reward = np.empty((steps, num_envs), np.float32)
+        self.terms: dict[str, np.ndarray] = {}
+
+    def record(self, t: int, sim: BatchedSim, result: StepResult) -> None:
+        r, terms = imitation_reward(self.character, result.kin, sim.reference_state(), self.weights)
+        self.reward[t] = r
+        for k, v in terms.items():
+            self.terms.setdefault(k, np.empty_like(self.reward))[t] = v
+
+    def finish(self) -> dict[str, np.ndarray]:
+        return {"reward": self.reward, **{f"reward/{k}": v for k, v in self.terms.items()}}
+
+
+class TrackingReward(Recorder):
+    """r_t of Eq. 20 for the state *before* each step (the state stored with transition t), [T, M].
+
+    The state after a reset is the reference itself (r = 1 up to rounding); it is computed all the same.
+    """
+
+    def __init__(self, weights: np.ndarray, temperature: float = 20.0):
+        self.weights = np.asarray(weights, np.float64)
+        self.temperature = temperature
+
+    def _of(self, sim: BatchedSim, state: np.ndarray, ids: np.ndarray | slice = slice(None)) -> np.ndarray:
+        ref = sim.library.features(sim.clip_id[ids], (sim.start_frame + sim.steps)[ids])
+        return tracking_reward(state, ref, self.weights, self.temperature)
+
+    def begin(self, steps: int, num_envs: int, sim: BatchedSim) -> None:
+        self.reward = np.empty((steps, num_envs), np.float32)
+        self.current = self._of(sim, state_features(sim.kin_state()))
+
+    def record(self, t: int, sim: BatchedSim, result: StepResult) -> None:
+        self.reward[t] = self.current
+        self.current = tracking_reward(result.state, result.ref_state, self.weights, self.temperature)
+
+    def after_reset(self, sim: BatchedSim, ids: np.ndarray) -> None:
+        self.current[ids] = self._of(sim, state_features(sim.kin_state())[ids], ids)
+
+    after_switch = after_reset  # the same state against its new reference
+
+    def finish(self) -> dict[str, np.ndarray]:
+        return {"reward": self.reward}
