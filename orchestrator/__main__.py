@@ -58,8 +58,8 @@ def main(dcfg: DictConfig) -> float | None:
     from orchestrator.checkpoint import CheckpointError
     from orchestrator.preflight import InputError, check
     from orchestrator.upstream import StageError
+    from workers.body.character import CharacterError
     from workers.motion.errors import ClipError
-    from workers.sim.character import CharacterError
 
     # The line's prefix per kind of bad input; clips, characters and checkpoints that an upstream stage
     # run here reads are ones `check` did not see.

@@ -19,10 +19,10 @@ from pathlib import Path
 
 import numpy as np
 
+from workers.body.character import Character
 from workers.motion.clip import process
 from workers.motion.errors import ClipError
 from workers.motion.formats import bundled_clip_names, load_raw
-from workers.sim.character import Character
 
 
 def check(name_or_path: str, joint_map: dict[str, str] | None = None) -> dict:

@@ -4,7 +4,7 @@
 the tracker creates (or, to resume, reopens) an MLflow run, before Ray is started or joined, and before
 anything is written to the run directory, so that bad input leaves everything already saved as it was:
 
-- the character file is our humanoid's skeleton (`workers.sim.character`) and every clip loads and is
+- the character file is our humanoid's skeleton (`workers.body.character`) and every clip loads and is
   plausible (`workers.motion.clip.check_plausible`): the same checks as `python -m orchestrator.clips check`;
 - `tracking.uri` has a scheme MLflow knows (checked at composition too; a sweep point takes its parent's);
 - `runtime.address` answers within `runtime.connect_timeout_s` (runtime=ray);
@@ -26,8 +26,8 @@ from orchestrator.schema import Config, ConfigError
 from orchestrator.tracking.uri import tracking_uri_error
 from orchestrator.trainer import LoopState
 from orchestrator.world import load_character_and_library
+from workers.body.character import Character, CharacterError
 from workers.motion.errors import ClipError
-from workers.sim.character import Character, CharacterError
 
 
 class InputError(RuntimeError):

@@ -12,6 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from orchestrator.tracking.uri import tracking_uri_error
+from workers.body.character import file_problem
 from workers.learners.discriminator import DiscriminatorConfig
 from workers.learners.ppo import PPOConfig
 from workers.learners.task import TaskConfig
@@ -21,7 +22,6 @@ from workers.motion.errors import ClipError
 from workers.motion.formats import resolve
 from workers.rewards import DEFAULT_WEIGHTS as IMITATION_WEIGHTS
 from workers.rewards import IMITATION_TERMS
-from workers.sim.character import file_problem
 from workers.sim.terrain import TerrainConfig
 
 LOCOMOTION = [

@@ -34,8 +34,8 @@ from orchestrator.tracking.base import RunLogger
 from orchestrator.tracking.model import deployable, log_policy
 from orchestrator.tracking.system import SystemMetrics
 from orchestrator.upstream import Upstream
+from workers.body.character import Character
 from workers.learners.base import Weights
-from workers.sim.character import Character
 
 log = logging.getLogger(__name__)
 
@@ -284,6 +284,8 @@ class Trainer:
         weights = self.method.policy_weights(self)
         if weights is None:
             return
-        found = deployable(self.cfg, type(self.method), weights, *self.method.character_and_library())
+        method, character, library = type(self.method), *self.method.character_and_library()
+        policy = method.make_policy(self.cfg, character)
+        found = deployable(policy, weights, character, library, method.sim_config(self.cfg), self.cfg.seed)
         if found is not None:
             self.model_uri = log_policy(self.logger, *found, Path(self.cfg.run_dir))

@@ -17,8 +17,8 @@ from __future__ import annotations
 from dataclasses import replace
 
 from orchestrator.schema import Config
+from workers.body.character import Character
 from workers.motion.library import MotionLibrary
-from workers.sim.character import Character
 from workers.sim.env import SimConfig
 
 

@@ -5,8 +5,8 @@ from __future__ import annotations
 import pytest
 import torch
 
+from workers.body.character import Character
 from workers.motion.library import MotionLibrary
-from workers.sim.character import Character
 
 
 @pytest.fixture(scope="session", autouse=True)

@@ -12,12 +12,12 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from workers.body.character import Character
 from workers.evaluation.controller import _inference
 from workers.models import body_state
 from workers.models.actor_critic import ActorCritic
 from workers.motion.library import MotionLibrary
 from workers.rewards import imitation_observation
-from workers.sim.character import Character
 
 
 def teacher_actions(

@@ -190,8 +190,8 @@ class GaussianPolicy(Policy):
 
 def expert_module(expert: dict[str, Any], num_bodies: int, action_dim: int) -> ActorCritic:
     """The PPO actor-critic of an expert's weights payload (`ExpertPolicy`'s "ppo" kind), in eval mode."""
+    from workers.body.features import StateLayout
     from workers.learners.ppo import build_actor_critic
-    from workers.sim.features import StateLayout
 
     obs_dim = observation_dim(expert["observation"], StateLayout(num_bodies).dim)
     module = build_actor_critic(obs_dim, action_dim, expert["config"])

@@ -17,10 +17,10 @@ from __future__ import annotations
 import numpy as np
 
 from workers.balancing import tracking_reward
+from workers.body.character import Character
+from workers.body.features import amp_dim, amp_features, state_features
 from workers.rewards import DEFAULT_WEIGHTS, imitation_reward
-from workers.sim.character import Character
 from workers.sim.env import BatchedSim, StepResult
-from workers.sim.features import amp_dim, amp_features, state_features
 
 
 class Recorder:

@@ -31,8 +31,8 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from workers.sim.character import Character
-from workers.sim.features import heading_inverse
+from workers.body.character import Character
+from workers.body.features import heading_inverse
 from workers.types import KinState
 
 IMITATION_TERMS = ("pose", "velocity", "end_effector", "root")

@@ -33,13 +33,13 @@ from typing import Any
 import numpy as np
 import torch
 
+from workers.body.character import Character
 from workers.evaluation.controller import relative_position_error
 from workers.learners.base import Weights
 from workers.models import body_state
 from workers.motion.library import MotionLibrary
 from workers.policies import Policy
 from workers.recorders import Recorder
-from workers.sim.character import Character
 from workers.sim.env import BatchedSim, SimConfig, StepResult
 from workers.types import Trajectory
 

@@ -18,7 +18,7 @@ class KinState:
 
     Everything is in world coordinates (z-up). Both the simulator and the
     motion library produce it, so reference and simulated states share one
-    definition; `workers.sim.features` turns it into s and Φ(s).
+    definition; `workers.body.features` turns it into s and Φ(s).
     """
 
     qpos: np.ndarray  # [N, nq] generalised coordinates

@@ -34,11 +34,11 @@ from orchestrator.world import collection_sim_config, load_character_and_library
 if TYPE_CHECKING:
     from orchestrator.runtime.base import Runtime
     from orchestrator.tracking.base import RunLogger
+    from workers.body.character import Character
     from workers.learners.base import Weights
     from workers.motion.library import MotionLibrary
     from workers.policies import Policy
     from workers.recorders import Recorder
-    from workers.sim.character import Character
     from workers.sim.env import SimConfig
 
 

@@ -24,9 +24,9 @@ from typing import Any
 from orchestrator.algos.base import Component, Method
 from orchestrator.components.ppo import PPOActor
 from orchestrator.evaluation.protocols import evaluate_imitation
+from workers.body.features import StateLayout
 from workers.learners.ppo import build_actor_critic
 from workers.policies import GaussianPolicy, observation_dim
-from workers.sim.features import StateLayout
 
 METRIC_PREFIX = {"discriminator": "disc"}  # DESIGN's metric namespaces where they differ from the key
 

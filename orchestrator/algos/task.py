@@ -39,8 +39,8 @@ from orchestrator.algos.onpolicy import OnPolicy
 from orchestrator.components.ppo import PPOActor
 from orchestrator.components.task import TaskActor, skill_model
 from orchestrator.evaluation.tasks import evaluate_task
+from workers.body.features import StateLayout
 from workers.losses.task import goal_observation_dim
-from workers.sim.features import StateLayout
 from workers.task_policy import TaskPPOPolicy, TaskRolloutPolicy
 
 

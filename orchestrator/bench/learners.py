@@ -39,7 +39,7 @@ uses batches of 64 and shorter rollouts):
                  VAE controller and world model                 controller and world model
 
 The humanoid has 15 bodies and 28 actions; AMP's Φ(s) has 105 features
-(`workers.sim.features.amp_dim`), which is also the observation size used for PPO.
+(`workers.body.features.amp_dim`), which is also the observation size used for PPO.
 """
 
 from __future__ import annotations

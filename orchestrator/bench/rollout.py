@@ -26,13 +26,13 @@ import numpy as np
 import torch
 
 from orchestrator.bench.sim import RawStepper, _setup, interleaved
+from workers.body.features import StateLayout
 from workers.learners.vae import VAEConfig
 from workers.models.actor_critic import ActorCritic
 from workers.policies import GaussianPolicy, VAEPolicy
 from workers.recorders import AMPFeatures, ImitationReward
 from workers.rollout import RolloutWorker
 from workers.sim.env import SimConfig
-from workers.sim.features import StateLayout
 
 POLICIES = ("vae", "vae-paper", "actor-critic", "tracker")
 LAPTOP_VAE = VAEConfig(latent_dim=32, encoder_hidden=(256, 256), policy="mlp", policy_hidden=(256, 256))

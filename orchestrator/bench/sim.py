@@ -41,8 +41,8 @@ import time
 import mujoco
 import numpy as np
 
+from workers.body.character import Character
 from workers.motion.library import MotionLibrary
-from workers.sim.character import Character
 from workers.sim.env import BatchedSim, SimConfig
 
 NOISE = 0.1

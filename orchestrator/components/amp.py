@@ -15,10 +15,10 @@ import torch
 from orchestrator.components.base import LearnerActor
 from orchestrator.schema import Config
 from orchestrator.world import load_character_and_library, seed_of
+from workers.body.character import Character
+from workers.body.features import amp_dim, amp_features
 from workers.learners.discriminator import DiscriminatorBatch, DiscriminatorLearner
 from workers.motion.library import MotionLibrary
-from workers.sim.character import Character
-from workers.sim.features import amp_dim, amp_features
 from workers.types import Trajectory
 
 

@@ -9,11 +9,11 @@ import torch
 
 from orchestrator.schema import Config
 from orchestrator.world import load_character_and_library, seed_of
+from workers.body.character import Character
 from workers.learners.base import Weights
 from workers.policies import Policy
 from workers.recorders import Recorder
 from workers.rollout import RolloutWorker
-from workers.sim.character import Character
 from workers.sim.env import SimConfig
 from workers.types import Trajectory
 

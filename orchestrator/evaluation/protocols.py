@@ -35,6 +35,7 @@ from orchestrator.evaluation import video
 from orchestrator.schema import Config
 from orchestrator.tracking.base import RunLogger
 from orchestrator.world import evaluation_sim_config
+from workers.body.character import Character
 from workers.evaluation.controller import random_sampling, time_until_fall, tracking_error
 from workers.evaluation.imitation import pose_error_episodes
 from workers.learners.base import Weights
@@ -42,7 +43,6 @@ from workers.learners.vae import build_controller
 from workers.models.vae import VAEController
 from workers.motion.library import MotionLibrary
 from workers.policies import GaussianPolicy
-from workers.sim.character import Character
 
 
 def evaluate_controller(

@@ -13,9 +13,9 @@ from orchestrator.evaluation.protocols import Progress, jsonable
 from orchestrator.schema import Config
 from orchestrator.tracking.base import RunLogger
 from orchestrator.world import evaluation_sim_config
+from workers.body.character import Character
 from workers.evaluation.tasks import evaluate_task_policy
 from workers.motion.library import MotionLibrary
-from workers.sim.character import Character
 from workers.task_policy import TaskRolloutPolicy
 
 

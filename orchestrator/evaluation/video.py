@@ -38,10 +38,10 @@ from workers.evaluation.render import Recording
 if TYPE_CHECKING:
     from orchestrator.schema import Config
     from orchestrator.tracking.base import RunLogger
+    from workers.body.character import Character
     from workers.models.vae import VAEController
     from workers.motion.library import MotionLibrary
     from workers.policies import GaussianPolicy
-    from workers.sim.character import Character
 
 log = logging.getLogger(__name__)
 

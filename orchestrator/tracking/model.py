@@ -17,11 +17,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from orchestrator.schema import Config
 from orchestrator.tracking.base import RunLogger
+from workers.body.character import Character
 from workers.learners.base import Weights
 from workers.models import body_state
-from workers.sim.env import BatchedSim
+from workers.motion.library import MotionLibrary
+from workers.policies import Policy
+from workers.sim.env import BatchedSim, SimConfig
 
 log = logging.getLogger(__name__)
 
@@ -29,12 +31,12 @@ MODEL_NAME = "controller"
 
 
 def deployable(
-    cfg: Config, method_cls, weights: Weights, character, library
+    policy: Policy, weights: Weights, character: Character, library: MotionLibrary, sim_config: SimConfig, seed: int
 ) -> tuple[torch.nn.Module, np.ndarray] | None:
-    """(module, input example [1, obs_dim]) of the method's policy with `weights`; None if it has no export."""
-    policy = method_cls.make_policy(cfg, character)
+    """(module, input example [1, obs_dim]) of `policy` with `weights`, from one standing start of the first
+    clip in a simulator as `sim_config` says; None if the policy has no export."""
     policy.set_weights(weights)
-    sim = BatchedSim(character, library, 1, method_cls.sim_config(cfg), seed=cfg.seed)
+    sim = BatchedSim(character, library, 1, sim_config, seed=seed)
     sim.reset(np.zeros(1, int), np.zeros(1, int), np.zeros(1, int))
     found = policy.deployable(sim, body_state.pack(sim.kin_state()))
     if found is None:

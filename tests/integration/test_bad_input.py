@@ -167,7 +167,7 @@ def test_character_file_missing_or_not_our_skeleton(tmp_path, capsys):
 
     # Our humanoid with a knee that is a ball joint: the type is checked, not only the names.
     ball_knee = tmp_path / "ball_knee.xml"
-    xml = (ROOT / "workers/sim/assets/humanoid.xml").read_text()
+    xml = (ROOT / "workers/body/assets/humanoid.xml").read_text()
     knee = 'name="right_knee" type="hinge" axis="0 -1 0" range="-3.14 0.3"'
     assert knee in xml
     ball_knee.write_text(xml.replace(knee, 'name="right_knee" type="ball" range="0 1"'))

@@ -12,8 +12,8 @@ import torch
 from mlflow.tracking import MlflowClient
 
 from orchestrator.build import run
-from workers.sim.character import Character
-from workers.sim.features import StateLayout
+from workers.body.character import Character
+from workers.body.features import StateLayout
 
 
 def client_for(cfg) -> MlflowClient:

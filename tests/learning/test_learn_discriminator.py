@@ -13,9 +13,9 @@ from collections.abc import Callable
 import numpy as np
 import pytest
 
+from workers.body.features import amp_dim, amp_features
 from workers.learners.discriminator import DiscriminatorBatch, DiscriminatorConfig, DiscriminatorLearner
 from workers.motion.library import MotionLibrary
-from workers.sim.features import amp_dim, amp_features
 
 WALK, RUN = "humanoid3d_walk", "humanoid3d_run"
 HIDDEN = (256, 256)  # smaller than AMP's (1024, 512) to keep the tests fast

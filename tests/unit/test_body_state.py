@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from workers.body import rotations as rot
+from workers.body.features import state_features
 from workers.models import body_state as B
-from workers.sim import rotations as rot
-from workers.sim.features import state_features
 
 
 def test_features_match_numpy(walk_run):

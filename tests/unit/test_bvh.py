@@ -8,13 +8,13 @@ import mujoco
 import numpy as np
 import pytest
 
+from workers.body import rotations as rot
+from workers.body.character import Character
 from workers.motion.clip import RawClip, interpolate_qpos, normalize_quats, process, transform_qpos
 from workers.motion.errors import ClipError
 from workers.motion.formats import bvh, load_raw
 from workers.motion.formats.bvh_retarget import GROUND_PERCENTILE, lowest_points
 from workers.motion.formats.deepmimic import Y_TO_Z
-from workers.sim import rotations as rot
-from workers.sim.character import Character
 
 LAFAN_NAMES = {
     "root": "Hips", "chest": "Spine", "neck": "Neck",

@@ -30,6 +30,7 @@ from test_bvh import assert_same_poses, body_globals, write_bvh
 
 from orchestrator import clips as motion_cli
 from orchestrator.world import load_character_and_library
+from workers.body import rotations as rot
 from workers.motion.clip import normalize_quats, process
 from workers.motion.errors import ClipError
 from workers.motion.formats import bvh, load_raw
@@ -37,7 +38,6 @@ from workers.motion.formats.bvh_names import match_joints
 from workers.motion.formats.bvh_retarget import GROUND_PERCENTILE, lowest_points
 from workers.motion.formats.deepmimic import Y_TO_Z
 from workers.motion.library import MotionLibrary
-from workers.sim import rotations as rot
 
 
 # ----------------------------------------------------------------------------

@@ -4,8 +4,8 @@ import mujoco
 import numpy as np
 import pytest
 
-from workers.sim import rotations as rot
-from workers.sim.character import Character
+from workers.body import rotations as rot
+from workers.body.character import Character
 
 
 def test_structure(character):

@@ -8,13 +8,13 @@ import numpy as np
 import pytest
 import torch
 
+from workers.body.features import StateLayout
 from workers.demos import DemoError, DemoSet
 from workers.learners.base import Weights
 from workers.learners.ppo import PPOConfig, build_actor_critic
 from workers.policies import ExpertPolicy
 from workers.rollout import RolloutWorker
 from workers.sim.env import SimConfig
-from workers.sim.features import StateLayout
 
 PPO = PPOConfig(policy_hidden=(32,), value_hidden=(32,))
 

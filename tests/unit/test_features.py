@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
+from workers.body.features import StateLayout, amp_dim, amp_features, state_features
 from workers.motion.library import transform_state
 from workers.sim.env import BatchedSim
-from workers.sim.features import StateLayout, amp_dim, amp_features, state_features
 
 
 @pytest.fixture(scope="module")

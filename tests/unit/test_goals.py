@@ -7,6 +7,7 @@ import math
 import numpy as np
 import pytest
 
+from workers.body import rotations as rot
 from workers.goals import (
     HEIGHT_HIGH_M,
     SUCCESS_RADIUS_M,
@@ -15,7 +16,6 @@ from workers.goals import (
 )
 from workers.losses.task import VR_POINTS
 from workers.models.body_state import pack
-from workers.sim import rotations as rot
 from workers.sim.env import BatchedSim
 
 NUM_BODIES = 15

@@ -12,7 +12,7 @@ import torch
 
 from orchestrator import checkpoint
 from orchestrator.checkpoint import CheckpointError
-from workers.sim.character import Character, CharacterError
+from workers.body.character import Character, CharacterError
 
 
 # Checkpoints ----------------------------------------------------------------------------------------
@@ -106,7 +106,7 @@ def test_mujoco_warnings_are_logged_not_written_to_the_working_directory(charact
     monkeypatch.chdir(tmp_path)
     data = mujoco.MjData(character.model)
     data.qvel[:] = 1e30  # "Nan, Inf or huge value in QVEL": MuJoCo's default handler writes MUJOCO_LOG.TXT
-    with caplog.at_level(logging.DEBUG, logger="workers.sim.mujoco_log"):  # past the first few: debug
+    with caplog.at_level(logging.DEBUG, logger="workers.body.mujoco_log"):  # past the first few: debug
         mujoco.mj_step(character.model, data)
     assert data.warning[mujoco.mjtWarning.mjWARN_BADQVEL].number > 0
     assert any("MuJoCo: Nan, Inf or huge value in QVEL" in r.getMessage() for r in caplog.records)

@@ -24,13 +24,13 @@ import numpy as np
 import pytest
 import torch
 
+from workers.body import rotations as rot
+from workers.body.features import StateLayout, state_features
 from workers.evaluation.controller import tracking_error
 from workers.models import body_state
 from workers.motion.clip import mirror_qpos
 from workers.motion.library import MotionLibrary
-from workers.sim import rotations as rot
 from workers.sim.env import BatchedSim, SimConfig
-from workers.sim.features import StateLayout, state_features
 from workers.types import KinState
 
 # conf/motion/locomotion.yaml's clips.

@@ -5,9 +5,9 @@ import math
 import numpy as np
 import pytest
 
+from workers.body import rotations as rot
+from workers.body.features import heading_inverse
 from workers.evaluation.pose_error import dtw_pose_error, per_frame_pose_error, pose_error_matrix, relative_positions
-from workers.sim import rotations as rot
-from workers.sim.features import heading_inverse
 
 
 def clip_relative_positions(library, name: str) -> np.ndarray:

@@ -133,10 +133,10 @@ def test_windows_from_real_trajectories_run_across_collects(character, walk_run,
 
 def test_one_worker_serves_the_vae_controller_and_the_actor_critic(character, walk_run, weights):
     """The same RolloutWorker runs either policy; PPO's extras and AMP's Φ come with the actor-critic's."""
+    from workers.body.features import amp_dim
     from workers.models.actor_critic import ActorCritic
     from workers.policies import GaussianPolicy
     from workers.recorders import AMPFeatures, ImitationReward
-    from workers.sim.features import amp_dim
 
     vae = make_worker(character, walk_run, weights).collect(10)
     assert set(vae.extras) == {"truncated"}  # the VAE's learners need only the body states and actions

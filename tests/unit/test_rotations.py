@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from workers.sim import rotations as rot
+from workers.body import rotations as rot
 
 
 @pytest.fixture

@@ -4,8 +4,8 @@ import mujoco
 import numpy as np
 import pytest
 
+from workers.body.features import StateLayout
 from workers.sim.env import BatchedSim, SimConfig
-from workers.sim.features import StateLayout
 from workers.sim.terrain import (
     BEYOND_DROP_M,
     TerrainConfig,
@@ -161,7 +161,7 @@ def test_config_rejects_bad_values(key, value):
 
 
 def test_rough_terrain_needs_a_free_root(walk_run):
-    from workers.sim.character import Character
+    from workers.body.character import Character
 
     fixed = Character.load(fixed_root=True, root_height=2.0)
     with pytest.raises(ValueError, match="free root"):

@@ -24,10 +24,10 @@ from collections.abc import Callable, Iterator
 import numpy as np
 import torch
 
+from workers.body.character import Character
 from workers.models import body_state
 from workers.models.vae import VAEController
 from workers.motion.library import MotionLibrary
-from workers.sim.character import Character
 from workers.sim.env import BatchedSim, SimConfig, without_tracking_termination
 
 DEFAULT_START_CLIP = "humanoid3d_walk"

@@ -21,11 +21,11 @@ from collections.abc import Callable
 
 import numpy as np
 
+from workers.body.character import Character
+from workers.body.features import heading_inverse
 from workers.evaluation.pose_error import dtw_pose_error, per_frame_pose_error, relative_positions
 from workers.motion.library import MotionLibrary
-from workers.sim.character import Character
 from workers.sim.env import BatchedSim, SimConfig, without_tracking_termination
-from workers.sim.features import heading_inverse
 from workers.types import KinState
 
 # Maps the simulator and the environments' body states [M, B, 13] to actions [M, A].

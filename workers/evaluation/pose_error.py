@@ -24,7 +24,7 @@ def relative_positions(xpos: np.ndarray, root: int = 0, heading_inverse: np.ndar
     """Positions of every non-root body relative to the root body, x_j − x_root.
 
     xpos: [T, B, 3] body positions. heading_inverse: optional [T, 3, 3] rotations
-    from world to each frame's heading frame (e.g. `workers.sim.features.heading_inverse`
+    from world to each frame's heading frame (e.g. `workers.body.features.heading_inverse`
     of the root rotations); when given, the offsets are rotated into it. The
     evaluation passes it, so that a character whose yaw drifts away from the
     reference's is still compared by its pose rather than by its heading.

@@ -30,9 +30,9 @@ import mujoco
 import numpy as np
 
 if TYPE_CHECKING:
+    from workers.body.character import Character
     from workers.models.vae import VAEController
     from workers.motion.library import MotionLibrary
-    from workers.sim.character import Character
     from workers.sim.env import BatchedSim, SimConfig
 
 # The camera: distance (m), azimuth and elevation (degrees; azimuth 90 looks along +y, a side view of

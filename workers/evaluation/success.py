@@ -12,11 +12,11 @@ from __future__ import annotations
 
 import numpy as np
 
+from workers.body.character import Character
 from workers.evaluation.imitation import Actor
 from workers.evaluation.pose_error import relative_positions
 from workers.models import body_state
 from workers.motion.library import MotionLibrary
-from workers.sim.character import Character
 from workers.sim.env import BatchedSim, SimConfig, without_tracking_termination
 
 

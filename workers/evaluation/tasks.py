@@ -27,11 +27,11 @@ from typing import Any
 import numpy as np
 import torch
 
+from workers.body.character import Character
 from workers.goals import SuccessTracker
 from workers.losses.task import task_loss
 from workers.models import body_state
 from workers.motion.library import MotionLibrary
-from workers.sim.character import Character
 from workers.sim.env import BatchedSim, SimConfig, without_tracking_termination
 from workers.task_policy import TaskRolloutPolicy
 

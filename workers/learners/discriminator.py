@@ -124,7 +124,7 @@ class TransitionReplay:
 class DiscriminatorLearner(Learner):
     """Owns the discriminator, its Adam optimiser and the replay of past policy transitions.
 
-    obs_dim: size of Φ(s) for one state (`workers.sim.features.amp_dim`); inputs are [B, 2·obs_dim].
+    obs_dim: size of Φ(s) for one state (`workers.body.features.amp_dim`); inputs are [B, 2·obs_dim].
     seed:    seeds the network's initial weights and the replay sampler.
     """
 

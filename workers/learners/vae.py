@@ -19,13 +19,13 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from workers.body.features import StateLayout
 from workers.learners.base import Learner, Schedule, Weights, as_tensor, make_optimizer
 from workers.losses.kl import gaussian_kl
 from workers.losses.vae import controlvae_loss, physicsvae_loss, pulse_loss
 from workers.models import body_state
 from workers.models.vae import PRIOR_TYPES, VAEController
 from workers.models.world_model import WorldModel
-from workers.sim.features import StateLayout
 
 OBJECTIVES = ("controlvae", "physicsvae", "pulse")
 

@@ -28,7 +28,7 @@ from workers.models.body_state import LIN, POS, QUAT, quat_to_matrix, yaw, yaw_m
 GOAL_DIMS = {"heading": 2, "height": 1, "steering": 3, "point_goal": 2, "vr": 9}
 
 # The points a VR rig tracks, as (term, body index, offset in the body's frame) on our humanoid
-# (workers/sim/assets/humanoid.xml, bodies in file order without the world). The humanoid has no head
+# (workers/body/assets/humanoid.xml, bodies in file order without the world). The humanoid has no head
 # body: the neck body (2) carries the head, a sphere of radius 0.1025 m centred 0.175 m above the neck
 # joint, so the headset is that sphere's centre, where the neck body's origin (the joint, at the base
 # of the neck) would not move with the head at all. The hands are the wrist bodies (right 5, left 8),

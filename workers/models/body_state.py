@@ -4,7 +4,7 @@ A body state is a tensor [..., B, 13] holding, per body and in world coordinates
 position (0:3), rotation quaternion w, x, y, z (3:7), linear velocity of the body
 origin (7:10) and angular velocity (10:13): ControlVAE's s* (§3.4.1). It is what
 the world model integrates and what the replay buffer stores; `features` turns
-it into s exactly as `workers.sim.features.state_features` does in NumPy (a test
+it into s exactly as `workers.body.features.state_features` does in NumPy (a test
 compares them), but differentiably.
 """
 
@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 
-from workers.sim.features import state_features
+from workers.body.features import state_features
 from workers.types import KinState
 
 if TYPE_CHECKING:
@@ -97,7 +97,7 @@ def yaw_matrix(theta: torch.Tensor) -> torch.Tensor:
 
 
 def features(bs: torch.Tensor) -> torch.Tensor:
-    """ControlVAE's s [..., 16·B + 3] of body states [..., B, 13]; see `workers.sim.features`."""
+    """ControlVAE's s [..., 16·B + 3] of body states [..., B, 13]; see `workers.body.features`."""
     lead = bs.shape[:-2]
     pos, quat, lin, ang = bs[..., POS], bs[..., QUAT], bs[..., LIN], bs[..., ANG]
     h_inv = yaw_matrix(-yaw(quat[..., 0, :])).unsqueeze(-3)  # [..., 1, 3, 3]

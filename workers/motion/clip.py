@@ -17,9 +17,9 @@ from dataclasses import dataclass, fields, replace
 import mujoco
 import numpy as np
 
+from workers.body import rotations as rot
+from workers.body.character import Character
 from workers.motion.errors import ClipError
-from workers.sim import rotations as rot
-from workers.sim.character import Character
 
 log = logging.getLogger(__name__)
 

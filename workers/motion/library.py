@@ -17,13 +17,13 @@ from pathlib import Path
 
 import numpy as np
 
+from workers.body import rotations as rot
+from workers.body.character import Character
+from workers.body.features import state_features
 from workers.motion import clip as clip_mod
 from workers.motion.clip import MotionClip, RawClip
 from workers.motion.errors import ClipError
 from workers.motion.formats import load_raw, resolve
-from workers.sim import rotations as rot
-from workers.sim.character import Character
-from workers.sim.features import state_features
 from workers.types import KinState
 
 log = logging.getLogger(__name__)

@@ -68,9 +68,9 @@ import mujoco
 import numpy as np
 from mujoco import batch as mj_batch
 
+from workers.body.character import Character
+from workers.body.features import state_features
 from workers.motion.library import MotionLibrary
-from workers.sim.character import Character
-from workers.sim.features import state_features
 from workers.sim.terrain import TerrainConfig, ground_geoms, reset_lift, terrain_model
 from workers.types import KinState
 

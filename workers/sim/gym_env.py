@@ -45,9 +45,9 @@ from gymnasium import spaces
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
+from workers.body.character import Character
 from workers.motion.library import MotionLibrary
 from workers.rewards import DEFAULT_WEIGHTS, imitation_observation, imitation_reward
-from workers.sim.character import Character
 from workers.sim.env import BatchedSim, SimConfig, StepResult
 
 ENV_ID = "MocapHumanoidImitation-v0"

@@ -36,7 +36,7 @@ from functools import lru_cache
 import mujoco
 import numpy as np
 
-from workers.sim import rotations as rot
+from workers.body import rotations as rot
 
 TERRAIN_KINDS = ("flat", "rough")
 GROUND_GEOMS = ("floor", "floor_beyond")  # geoms that are the ground (touching them with the feet is no fall)

@@ -9,9 +9,9 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from workers.body.character import Character
 from workers.motion.clip import RawClip
 from workers.motion.errors import ClipError
-from workers.sim.character import Character
 
 
 def bundled_motion_dir() -> Path:

@@ -53,13 +53,13 @@ from pathlib import Path
 
 import numpy as np
 
+from workers.body import rotations as rot
+from workers.body.character import Character
 from workers.motion.clip import RawClip, interpolate_qpos, normalize_quats
 from workers.motion.errors import ClipError
 from workers.motion.formats.bvh_names import match_joints, refuse_unmatched, unmatched
 from workers.motion.formats.bvh_retarget import END_SITES, GROUND_HEIGHT, ground_shift, rest_corrections, tree
 from workers.motion.formats.deepmimic import Y_TO_Z
-from workers.sim import rotations as rot
-from workers.sim.character import Character
 
 log = logging.getLogger(__name__)
 

@@ -8,8 +8,8 @@ from __future__ import annotations
 import mujoco
 import numpy as np
 
-from workers.sim import rotations as rot
-from workers.sim.character import Character
+from workers.body import rotations as rot
+from workers.body.character import Character
 
 # End Sites of our leaf bodies in the body frame (z-up, metres): the top of the
 # head sphere, the far side of the hand spheres, the front bottom edge of the feet.

@@ -14,9 +14,9 @@ from pathlib import Path
 
 import numpy as np
 
+from workers.body.character import Character
 from workers.motion.clip import RawClip
 from workers.motion.errors import ClipError
-from workers.sim.character import Character
 
 FRAME_WIDTH = 44
 # (joint name, width) after the duration, root position and root rotation.

@@ -13,9 +13,9 @@ from pathlib import Path
 
 import numpy as np
 
+from workers.body.character import Character
 from workers.motion.clip import RawClip
 from workers.motion.errors import ClipError
-from workers.sim.character import Character
 
 
 def load(character: Character, path: str | Path, name: str | None = None) -> RawClip:

@@ -4,7 +4,7 @@ MuJoCo's default warning handler prints a warning and appends it to MUJOCO_LOG.T
 directory (an unstable simulation: "Nan, Inf or huge value in QACC at DOF 0"). `route_warnings`
 replaces it, for the whole process, with one that logs to this module's logger: the first few as
 warnings, the rest (one per environment that blows up) at debug level. The simulator counts the
-warnings per environment as well (`workers.sim.env.BatchedSim.warning_counts`). `workers.sim` calls it
+warnings per environment as well (`workers.sim.env.BatchedSim.warning_counts`). `workers.body` calls it
 on import, so every process that simulates routes its own. The handler runs on mujoco.batch's threads
 too, which is safe: the bindings take the GIL to call it.
 """

@@ -22,8 +22,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from workers.sim import rotations as rot
-from workers.sim.character import Character
+from workers.body import rotations as rot
+from workers.body.character import Character
 from workers.types import KinState
 
 

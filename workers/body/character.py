@@ -14,7 +14,7 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
-from workers.sim import rotations as rot
+from workers.body import rotations as rot
 
 ASSET_DIR = Path(__file__).parent / "assets"
 HUMANOID_XML = ASSET_DIR / "humanoid.xml"
