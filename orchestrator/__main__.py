@@ -86,9 +86,9 @@ def _fail(line: str, parent: dict | None = None) -> NoReturn:
     print(line, file=sys.stderr)
     if parent is not None:
         try:
-            from mlflow import MlflowClient
+            from orchestrator.tracking.query import set_terminated
 
-            MlflowClient(parent["uri"]).set_terminated(parent["parent_run_id"], "FAILED")
+            set_terminated(parent["uri"], parent["parent_run_id"], "FAILED")
         except Exception:  # noqa: BLE001 - the store is away: the parent stays RUNNING, the line above says why
             pass
     sys.exit(2)

@@ -64,13 +64,9 @@ def artifact_location(cfg: Config, logger: RunLogger) -> str | None:
     if not cfg.tracking.enabled or logger.run_id is None:
         return None
     try:
-        from mlflow import MlflowClient
+        from orchestrator.tracking.query import artifact_root  # loads mlflow: only when tracked
 
-        return (
-            MlflowClient(store_uri(cfg.tracking.uri, cfg.run_dir))
-            .get_run(logger.run_id)
-            .info.artifact_uri.removeprefix("file://")
-        )
+        return artifact_root(store_uri(cfg.tracking.uri, cfg.run_dir), logger.run_id)
     except Exception:  # noqa: BLE001 - the server is away: the summary says less
         return None
 

@@ -39,7 +39,8 @@ from omegaconf import OmegaConf
 from orchestrator import checkpoint
 from orchestrator.compose import compose, validate
 from orchestrator.schema import Config, ConfigError
-from orchestrator.upstream import Upstream, existing_run, find_finished, short_error
+from orchestrator.tracking.query import find_finished
+from orchestrator.upstream import Upstream, existing_run, short_error
 
 # Trains a stage's config with its resolved upstream stages under its stage hash; returns its run id.
 TrainStage = Callable[[Config, dict[str, Upstream], str], str]
@@ -98,9 +99,6 @@ def resolve(cfg: Config, uri: str, workdir: Path, experiment: str, train: TrainS
 def ensure(
     role: str, spec: str, cfg: Config, uri: str, workdir: Path, experiment: str, train: TrainStage, log=print
 ) -> Upstream:
-    from mlflow.tracking import MlflowClient
-
-    client = MlflowClient(uri)
     cache = workdir / "upstream" / role
     run_id = RUN_ID.fullmatch(spec.strip())
     if run_id:
@@ -111,7 +109,7 @@ def ensure(
     lineage = {r: u.run_id for r, u in above.items()}
     for r, u in above.items():
         lineage.update({f"{r}.{k}": v for k, v in u.lineage.items()})
-    found = find_finished(client, h)
+    found = find_finished(uri, h)
     if found:
         log(f"stage {role}: reusing {up.algo.name} run {found} (hash {h})")
         return Upstream(role, up.algo.name, found, h, uri, cache, True, lineage)

@@ -9,7 +9,7 @@ Each reader names the stage and the artifact when something is missing or unusab
 - `expert_weights`: an expert's network (a tracker or amp run's PPO actor, a controlvae run's VAE);
 - `load_demos`, `load_manifest`: the demos dataset an `algo=demos` stage wrote;
 - `layer_state`: PhysicsVAE's simulation layer, from a world_model stage's checkpoint;
-- `find_finished`, `existing_run`: a finished run by stage hash, or by id.
+- `existing_run`: a finished run given by its id (`tracking.query.find_finished` finds one by stage hash).
 """
 
 from __future__ import annotations
@@ -18,16 +18,14 @@ import json
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from orchestrator import checkpoint
 from orchestrator.compose import find_method, validate
 from orchestrator.schema import Config, ConfigError
+from orchestrator.tracking import query
 from workers.demos import DemoError, DemoSet
 from workers.learners.base import Weights
-
-if TYPE_CHECKING:
-    from mlflow.tracking import MlflowClient
 
 # The demos stage's artifacts (written by `orchestrator.algos.demos`).
 DEMOS_FILE = "demos/demos.npz"
@@ -56,14 +54,12 @@ class Upstream:
 
     def artifact(self, path: str) -> Path:
         """The artifact `path` of the stage's run, downloaded; a StageError naming both when it is not there."""
-        from mlflow.tracking import MlflowClient
-
         local = self.cache / path
         if local.exists():
             return local
         self.cache.mkdir(parents=True, exist_ok=True)
         try:
-            out = Path(MlflowClient(self.uri).download_artifacts(self.run_id, path, str(self.cache)))
+            out = query.download_artifact(self.uri, self.run_id, path, self.cache)
         except Exception as e:
             hint = ""
             if "mlflow-artifacts" in str(e):
@@ -84,10 +80,8 @@ class Upstream:
 
     def checkpoint(self) -> dict[str, Any]:
         """The stage's last checkpoint (state dicts, loaded with weights_only=True)."""
-        from mlflow.tracking import MlflowClient
-
         try:
-            names = [a.path for a in MlflowClient(self.uri).list_artifacts(self.run_id, "checkpoints")]
+            names = query.list_artifacts(self.uri, self.run_id, "checkpoints")
         except Exception as e:
             raise StageError(f"{self.describe()}: cannot list its checkpoints ({short_error(e)})") from None
         names = sorted(n for n in names if re.search(r"ckpt-\d+\.pt$", n))
@@ -100,9 +94,7 @@ class Upstream:
             raise StageError(f"{self.describe()}: artifact {names[-1]} ({path}): {e.message}") from None
 
     def metrics(self) -> dict[str, float]:
-        from mlflow.tracking import MlflowClient
-
-        return dict(MlflowClient(self.uri).get_run(self.run_id).data.metrics)
+        return query.run_metrics(self.uri, self.run_id)
 
 
 def short_error(e: BaseException) -> str:
@@ -110,31 +102,14 @@ def short_error(e: BaseException) -> str:
     return str(e).strip().splitlines()[0][:200] if str(e).strip() else type(e).__name__
 
 
-def find_finished(client: MlflowClient, stage_hash: str) -> str | None:
-    """The newest FINISHED run with this stage hash, in any experiment of the store."""
-    experiments = [e.experiment_id for e in client.search_experiments()]
-    if not experiments:
-        return None
-    runs = client.search_runs(
-        experiments,
-        filter_string=f"tags.stage_hash = '{stage_hash}' and attributes.status = 'FINISHED'",
-        order_by=["attributes.start_time DESC"],
-        max_results=1,
-    )
-    return runs[0].info.run_id if runs else None
-
-
 def existing_run(role: str, run_id: str, uri: str, cache: Path) -> Upstream:
     """A run given by its id (`run:<id>`) as the stage `role`: it must be in the store and FINISHED."""
-    from mlflow.tracking import MlflowClient
-
     try:
-        r = MlflowClient(uri).get_run(run_id)
+        status, tags = query.run_status_and_tags(uri, run_id)
     except Exception as e:
         raise StageError(f"stage {role}: run {run_id} is not in {uri} ({short_error(e)})") from None
-    if r.info.status != "FINISHED":
-        raise StageError(f"stage {role}: run {run_id} is {r.info.status}, not FINISHED")
-    tags = r.data.tags
+    if status != "FINISHED":
+        raise StageError(f"stage {role}: run {run_id} is {status}, not FINISHED")
     lineage = {
         k.removeprefix("upstream."): v
         for k, v in tags.items()

@@ -32,7 +32,7 @@ def tracking_reward(state: np.ndarray, ref_state: np.ndarray, weights: np.ndarra
 
 def library_rows(library: MotionLibrary, clip_ids: np.ndarray, frames: np.ndarray) -> np.ndarray:
     """The library's flat frame index of (clip, frame): cyclic clips wrap, one-shot clips clamp."""
-    return library._rows(np.asarray(clip_ids, int), np.asarray(frames, int))[0]
+    return library.rows(np.asarray(clip_ids, int), np.asarray(frames, int))[0]
 
 
 def discounted_returns(

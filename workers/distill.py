@@ -13,7 +13,7 @@ import numpy as np
 import torch
 
 from workers.body.character import Character
-from workers.evaluation.controller import _inference
+from workers.evaluation.controller import evaluation_mode
 from workers.models import body_state
 from workers.models.actor_critic import ActorCritic
 from workers.motion.library import MotionLibrary
@@ -48,7 +48,7 @@ def teacher_actions(
     n = states.shape[0]
     clip_id = np.broadcast_to(np.asarray(clip_id, dtype=int), (n,))
     frame = np.broadcast_to(np.asarray(frame, dtype=int), (n,))
-    with _inference(module):
+    with evaluation_mode(module):
         s = body_state.features_np(states)  # as the policy observes
         obs = imitation_observation(s, library.features(clip_id, frame + 1))
         mean = module.mean(torch.from_numpy(obs)).numpy()

@@ -1,4 +1,4 @@
-"""The plug-in contract: what a method declares (`Method`, `Component`) and what it may call on the trainer (`TrainerAPI`).
+"""The plug-in contract: what a method declares (`Method`, `Component`) and may call on the trainer (`TrainerAPI`).
 
 A method (`conf/algo/<name>.yaml` names its class with `_target_`; one module per method in this
 folder, named by its paper) says:

@@ -24,7 +24,8 @@ from workers.policies import VAEPolicy
 
 
 class Offline(Method):
-    """What both offline stages (the simulation layer and the VAE) share: the demos, an epoch per iteration, held-out metrics."""
+    """What both offline stages (the simulation layer and the VAE) share: the demos, an epoch per iteration,
+    held-out metrics."""
 
     uses_workers = False
     learner_key = ""

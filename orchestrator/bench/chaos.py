@@ -216,16 +216,16 @@ def run(
     overrides: Sequence[str] = (),
     say: Callable[[str], None] = lambda m: print(m, file=sys.stderr, flush=True),
 ) -> dict[str, Any]:
-    from mlflow.tracking import MlflowClient
-
     from orchestrator import build, checkpoint
     from orchestrator.compose import compose, validate
+    from orchestrator.tracking.query import metric_steps, run_status_and_tags
     from orchestrator.tracking.server import start_local_server
+    from orchestrator.tracking.uri import embedded_uri
 
     outage = default_outage(minutes) if outage is None else outage
     run_dir = Path(run_dir).resolve()
     train_dir = run_dir / "run"
-    backend, artifacts = f"sqlite:///{run_dir / 'server' / 'mlflow.db'}", run_dir / "server" / "mlartifacts"
+    backend, artifacts = embedded_uri(run_dir / "server"), run_dir / "server" / "mlartifacts"
     artifacts.mkdir(parents=True, exist_ok=True)
     server = start_local_server(backend, artifacts, log_path=run_dir / "server" / "mlflow-server.log")
     config = [
@@ -260,10 +260,9 @@ def run(
     try:
         if not server.running():  # the run ended within the outage
             server = start_local_server(backend, artifacts, port=server.port, log_path=server.log_path)
-        client = MlflowClient(server.uri)
         run_id = json.loads((train_dir / checkpoint.RUN_FILE).read_text())["run_id"]
-        status = client.get_run(run_id).info.status if run_id else "not created"
-        steps = [m.step for m in client.get_metric_history(run_id, ITERATION_METRIC)] if run_id else []
+        status = run_status_and_tags(server.uri, run_id)[0] if run_id else "not created"
+        steps = metric_steps(server.uri, run_id, ITERATION_METRIC) if run_id else []
     finally:
         server.stop()
     last = checkpoint.latest(train_dir / "checkpoints")

@@ -99,7 +99,7 @@ def run(
 
     from orchestrator.bench import peer_rllib
 
-    ray, _, _ = peer_rllib._rllib()  # a clear error when the extra is not installed
+    ray, _, _ = peer_rllib.import_rllib()  # a clear error when the extra is not installed
     torch.set_num_threads(1)
     started = not ray.is_initialized()
     if started:
@@ -133,18 +133,18 @@ def run(
                     trainer.step()
                 rt.get(getattr(trainer.method, "pending", []))
                 ours = (trainer.state.samples - s0) / (time.perf_counter() - t0)
-                before = peer_rllib._lifetime_steps(last)
+                before = peer_rllib.lifetime_steps(last)
                 t0 = time.perf_counter()
                 for _ in range(per_round):
                     last = algo.train()
-                theirs_steps = peer_rllib._lifetime_steps(last) - before - sampled_apart
+                theirs_steps = peer_rllib.lifetime_steps(last) - before - sampled_apart
                 theirs = theirs_steps / (time.perf_counter() - t0)
                 pairs["end_to_end"].append((ours, theirs))
                 counted.append((trainer.state.samples - s0, theirs_steps))
                 t0 = time.perf_counter()
                 trajectories = rt.get([rt.call(w, "collect", steps) for w in trainer.workers])
                 ours = sum(tr.num_transitions for tr in trajectories) / (time.perf_counter() - t0)
-                sampled_apart, secs = peer_rllib._time_sampling(algo, 1, batch, 0)
+                sampled_apart, secs = peer_rllib.time_sampling(algo, 1, batch, 0)
                 pairs["sampling"].append((ours, sampled_apart / secs))
         finally:
             if algo is not None:

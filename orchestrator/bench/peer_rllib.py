@@ -53,7 +53,7 @@ ENV_ID = "workers.sim.gym_env:MocapHumanoidImitation-v0"  # module prefix: remot
 MISSING = "RLlib is not installed; the peer benchmark needs it: pip install -e .[peer]"
 
 
-def _rllib():
+def import_rllib():
     try:
         import ray
         from ray.rllib.algorithms.ppo import PPOConfig
@@ -75,7 +75,7 @@ def build_config(
     """RLlib's PPOConfig for the peer comparison (see the module docstring)."""
     import gymnasium
 
-    _, PPOConfig, DefaultModelConfig = _rllib()
+    _, PPOConfig, DefaultModelConfig = import_rllib()
     return (
         PPOConfig()
         .framework("torch")
@@ -124,7 +124,7 @@ def measure_rllib(
     """
     if min(num_envs, train_batch_size, minibatch_size, iterations) < 1 or warmup < 0 or env_runners < 0:
         raise ValueError("num_envs, batch sizes and iterations must be at least 1, warmup and env_runners at least 0")
-    ray, _, _ = _rllib()
+    ray, _, _ = import_rllib()
     import torch
 
     if torch_threads is not None:
@@ -139,13 +139,13 @@ def measure_rllib(
         result = None
         for _ in range(warmup):
             result = algo.train()
-        steps0 = _lifetime_steps(result)  # 0 before the first iteration
+        steps0 = lifetime_steps(result)  # 0 before the first iteration
         t0 = time.perf_counter()
         for _ in range(iterations):
             result = algo.train()
         train_s = time.perf_counter() - t0
-        train_steps = _lifetime_steps(result) - steps0
-        sample_steps, sample_s = _time_sampling(algo, iterations, train_batch_size, env_runners)
+        train_steps = lifetime_steps(result) - steps0
+        sample_steps, sample_s = time_sampling(algo, iterations, train_batch_size, env_runners)
     finally:
         if algo is not None:
             algo.stop()
@@ -180,13 +180,13 @@ def measure_rllib(
     return out
 
 
-def _lifetime_steps(result: dict | None) -> float:
+def lifetime_steps(result: dict | None) -> float:
     from ray.rllib.utils.metrics import NUM_ENV_STEPS_SAMPLED_LIFETIME
 
     return float((result or {}).get(NUM_ENV_STEPS_SAMPLED_LIFETIME, 0.0))
 
 
-def _time_sampling(algo, calls: int, steps_per_call: int, env_runners: int) -> tuple[int, float]:
+def time_sampling(algo, calls: int, steps_per_call: int, env_runners: int) -> tuple[int, float]:
     """(steps, seconds) of `calls` env-runner `sample(num_timesteps=steps_per_call)` calls."""
 
     def sample(runner) -> int:

@@ -25,7 +25,7 @@ import time
 import numpy as np
 import torch
 
-from orchestrator.bench.sim import RawStepper, _setup, interleaved
+from orchestrator.bench.sim import RawStepper, interleaved, walk_run_setup
 from workers.body.features import StateLayout
 from workers.learners.vae import VAEConfig
 from workers.models.actor_critic import ActorCritic
@@ -99,7 +99,7 @@ def run(
     pairs = max(3, int(round(seconds / (2 * block_seconds))))
     rows = []
     for hz in sim_hz:
-        character, library = _setup(hz, control_hz)
+        character, library = walk_run_setup(hz, control_hz)
         config = SimConfig(sim_hz=hz, control_hz=control_hz, threads=threads)
         for kind in policies:
             worker = make_worker(kind, character, library, envs, config, seed)

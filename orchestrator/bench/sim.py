@@ -49,7 +49,7 @@ NOISE = 0.1
 BADQACC = int(mujoco.mjtWarning.mjWARN_BADQACC)
 
 
-def _setup(sim_hz: float, control_hz: float) -> tuple[Character, MotionLibrary]:
+def walk_run_setup(sim_hz: float, control_hz: float) -> tuple[Character, MotionLibrary]:
     character = Character.load(sim_hz=sim_hz)
     library = MotionLibrary.load(character, ["humanoid3d_walk"], fps=control_hz)
     return character, library
@@ -191,7 +191,7 @@ def interleaved(raw: RawStepper, batched: BatchedRunner, pairs: int, block_secon
 def run_rate(
     envs: int, block_seconds: float, pairs: int, sim_hz: float, control_hz: float, seed: int, threads: int = 1
 ) -> dict:
-    character, library = _setup(sim_hz, control_hz)
+    character, library = walk_run_setup(sim_hz, control_hz)
     config = SimConfig(sim_hz=sim_hz, control_hz=control_hz, threads=threads)
     sim = BatchedSim(character, library, envs, config, seed=seed)
     rng = np.random.default_rng(seed)

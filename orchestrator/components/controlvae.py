@@ -1,4 +1,4 @@
-"""ControlVAE's learner actors: the world model (`learner-world_model`) and the VAE (`learner-vae`), on replay batches."""
+"""ControlVAE's learner actors: the world model (`learner-world_model`) and the VAE (`learner-vae`), on replay data."""
 
 from __future__ import annotations
 

@@ -9,8 +9,8 @@ The GL backend. MuJoCo picks its OpenGL platform from MUJOCO_GL once, when it is
 then this process has imported it for the simulator, with whatever MUJOCO_GL said (usually nothing,
 which means GLFW and a display). So the frames are rendered in a child process
 (`python -m orchestrator.evaluation.video <job dir> <output dir>`) started with MUJOCO_GL set: the user's
-MUJOCO_GL when there is one, else `egl` and then `osmesa` (both headless; EGL uses a GPU when there is one, Mesa's llvmpipe
-otherwise). The first backend that works is kept for the rest of the process. A child also keeps a GL
+MUJOCO_GL when there is one, else `egl` and then `osmesa` (both headless; EGL uses a GPU when there is one, Mesa's
+llvmpipe otherwise). The first backend that works is kept for the rest of the process. A child also keeps a GL
 crash (a driver's segfault) out of training. When no backend works, one warning per run names each
 MUJOCO_GL tried and what failed, and the run goes on without videos (no further attempts).
 """

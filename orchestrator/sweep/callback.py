@@ -114,6 +114,7 @@ class SweepCallback(Callback):
         uri = store
         experiment = config.tracking.experiment or config.preset
         if config.tracking.uri is None and runs_in_parallel(config):
+            from orchestrator.tracking.query import ensure_experiment
             from orchestrator.tracking.server import start_local_server
 
             # The experiment is made in the store itself, its artifacts in files beside it (the jobs write them
@@ -244,16 +245,6 @@ class SweepCallback(Callback):
             look += f" --artifacts-destination {(self.sweep_dir / 'mlartifacts').resolve()}"
         where = f"MLflow: {store}" if store.startswith("http") else f"MLflow UI: {look}"
         print(f"{where}  (sweep {self.logger.run_id})")
-
-
-def ensure_experiment(store: str, name: str) -> None:
-    from mlflow.tracking import MlflowClient
-
-    from orchestrator.tracking.mlflow import EXPERIMENT_TAGS, store_artifacts
-
-    client = MlflowClient(store)
-    if client.get_experiment_by_name(name) is None:
-        client.create_experiment(name, artifact_location=store_artifacts(store), tags=EXPERIMENT_TAGS)
 
 
 def claims_table(name: str, rows: list[dict[str, Any]], compare_by: str, facet_by: str | None) -> str:

@@ -1,10 +1,75 @@
-"""Reading runs back: the children of a sweep's parent run, for the sweep's comparison."""
+"""The store's runs, read back and touched outside a run's own logger: every `MlflowClient` call of the service.
+
+A finished stage's artifacts, metrics and tags (`orchestrator.upstream`), the newest finished run with a
+stage hash (`orchestrator.stages`), a run's artifact root (the closing summary), a sweep's children
+and their histories (`orchestrator.sweep`), a sweep's experiment and its parent run's end, a run's
+metric steps (`orchestrator.bench.chaos`).
+"""
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
 from mlflow.tracking import MlflowClient
+
+from orchestrator.tracking.base import EXPERIMENT_TAGS, store_artifacts
+
+
+def download_artifact(uri: str, run_id: str, path: str, dest: Path) -> Path:
+    """Run `run_id`'s artifact `path`, downloaded under `dest`; the local path."""
+    return Path(MlflowClient(uri).download_artifacts(run_id, path, str(dest)))
+
+
+def list_artifacts(uri: str, run_id: str, path: str) -> list[str]:
+    """The artifact paths of run `run_id` under `path`."""
+    return [a.path for a in MlflowClient(uri).list_artifacts(run_id, path)]
+
+
+def run_metrics(uri: str, run_id: str) -> dict[str, float]:
+    """The latest value of each of the run's metrics."""
+    return dict(MlflowClient(uri).get_run(run_id).data.metrics)
+
+
+def run_status_and_tags(uri: str, run_id: str) -> tuple[str, dict[str, str]]:
+    r = MlflowClient(uri).get_run(run_id)
+    return r.info.status, dict(r.data.tags)
+
+
+def artifact_root(uri: str, run_id: str) -> str:
+    """Where the run's artifacts are (a local directory for a SQLite store)."""
+    return MlflowClient(uri).get_run(run_id).info.artifact_uri.removeprefix("file://")
+
+
+def find_finished(uri: str, stage_hash: str) -> str | None:
+    """The newest FINISHED run with this stage hash, in any experiment of the store."""
+    client = MlflowClient(uri)
+    experiments = [e.experiment_id for e in client.search_experiments()]
+    if not experiments:
+        return None
+    runs = client.search_runs(
+        experiments,
+        filter_string=f"tags.stage_hash = '{stage_hash}' and attributes.status = 'FINISHED'",
+        order_by=["attributes.start_time DESC"],
+        max_results=1,
+    )
+    return runs[0].info.run_id if runs else None
+
+
+def metric_steps(uri: str, run_id: str, key: str) -> list[int]:
+    """The steps at which the run logged `key`, in the order the store returns them."""
+    return [m.step for m in MlflowClient(uri).get_metric_history(run_id, key)]
+
+
+def set_terminated(uri: str, run_id: str, status: str) -> None:
+    MlflowClient(uri).set_terminated(run_id, status)
+
+
+def ensure_experiment(uri: str, name: str) -> None:
+    """Experiment `name` in the store, created (with its artifacts beside a SQLite store) if missing."""
+    client = MlflowClient(uri)
+    if client.get_experiment_by_name(name) is None:
+        client.create_experiment(name, artifact_location=store_artifacts(uri), tags=EXPERIMENT_TAGS)
 
 
 def child_runs(uri: str, parent_run_id: str) -> list[dict[str, Any]]:

@@ -22,7 +22,8 @@ from stage_runs import runs_of, smoke_config
 from orchestrator import stages
 from orchestrator.build import run, train_stage
 from orchestrator.components.physicsvae import PhysicsVAEActor, SimulationLayerActor
-from orchestrator.upstream import find_finished, load_demos
+from orchestrator.tracking.query import find_finished
+from orchestrator.upstream import load_demos
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -222,10 +223,10 @@ def test_only_a_finished_run_is_reused(pipeline):
         r = client.create_run(experiment, tags={"stage_hash": "h-test", "algo": "tracker"})
         client.set_terminated(r.info.run_id, status)
     client.create_run(experiment, tags={"stage_hash": "h-test", "algo": "tracker"})  # still RUNNING
-    assert find_finished(client, "h-test") is None
+    assert find_finished(uri, "h-test") is None
     done = client.create_run(experiment, tags={"stage_hash": "h-test", "algo": "tracker"})
     client.set_terminated(done.info.run_id, "FINISHED")
-    assert find_finished(client, "h-test") == done.info.run_id
+    assert find_finished(uri, "h-test") == done.info.run_id
 
 
 def test_a_controlvae_posterior_can_be_the_expert(pipeline):

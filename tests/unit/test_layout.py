@@ -141,3 +141,32 @@ def test_every_module_is_found():
     names = set(project_modules())
     assert {"orchestrator.trainer", "orchestrator.algos.base", "workers.rollout", "workers.sim.env"} <= names
     assert len(names) == sum(1 for pkg in (orchestrator, workers) for _ in Path(pkg.__file__).parent.rglob("*.py"))
+
+
+def third_party_imports(path: Path) -> set[str]:
+    out: set[str] = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            out.update(a.name.split(".")[0] for a in node.names)
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            out.add(node.module.split(".")[0])
+    return out
+
+
+def test_only_the_tracking_room_imports_mlflow():
+    offenders = [
+        name
+        for name, path in project_modules().items()
+        if "mlflow" in third_party_imports(path) and not name.startswith("orchestrator.tracking")
+    ]
+    assert offenders == []
+
+
+def test_no_private_name_is_imported_from_another_module():
+    # `from a import _name`: a module's private helper is its own; one that others need gets a public name.
+    offenders = []
+    for name, path in project_modules().items():
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom) and (node.module or "").split(".")[0] in PACKAGES:
+                offenders += [f"{name}: {node.module}.{a.name}" for a in node.names if a.name.startswith("_")]
+    assert offenders == []

@@ -37,7 +37,7 @@ Policy = Callable[[BatchedSim], np.ndarray]
 
 
 @contextlib.contextmanager
-def _inference(controller: torch.nn.Module | None) -> Iterator[None]:
+def evaluation_mode(controller: torch.nn.Module | None) -> Iterator[None]:
     was_training = controller.training if controller is not None else False
     if controller is not None:
         controller.eval()
@@ -49,7 +49,7 @@ def _inference(controller: torch.nn.Module | None) -> Iterator[None]:
             controller.train(was_training)
 
 
-def _features(sim: BatchedSim) -> torch.Tensor:
+def sim_features(sim: BatchedSim) -> torch.Tensor:
     """s [N, D] of the simulated characters, as the learners compute it (float32 body states)."""
     return body_state.features(torch.from_numpy(body_state.pack(sim.kin_state())))
 
@@ -118,9 +118,9 @@ def time_until_fall(
     dt = 1.0 / config.control_hz
     max_steps = int(round(max_seconds * config.control_hz))
     fall_step = np.zeros(num_rollouts, int)  # 0: has not fallen
-    with _inference(controller):
+    with evaluation_mode(controller):
         for t in range(1, max_steps + 1):
-            s = _features(sim)
+            s = sim_features(sim)
             z = controller.prior_dist(s).rsample(generator)
             result = sim.step(controller.act(s, z).numpy())
             fall_step[(fall_step == 0) & result.fell] = t
@@ -188,12 +188,12 @@ def tracking_error(
     sim = BatchedSim(character, library, n, config, seed=seed)
     sim.reset(np.arange(n), clips, starts)
     total = np.zeros(n)
-    with _inference(controller):
+    with evaluation_mode(controller):
         for t in range(int(steps.max())):
             if policy is not None:
                 actions = np.asarray(policy(sim))
             else:
-                s = _features(sim)
+                s = sim_features(sim)
                 ref_next = sim.reference_next_features()
                 posterior, _ = controller.encode(s, torch.from_numpy(ref_next.astype(np.float32)))
                 actions = controller.act(s, posterior.mean).numpy()
@@ -239,9 +239,9 @@ def random_sampling(
     roots = np.empty((steps + 1, num_rollouts, 2))
     roots[0] = sim.kin_state().xpos[:, 0, :2]
     fell = np.zeros(num_rollouts, bool)
-    with _inference(controller):
+    with evaluation_mode(controller):
         for t in range(steps):
-            s = _features(sim)
+            s = sim_features(sim)
             z = controller.prior_dist(s).rsample(generator)
             result = sim.step(controller.act(s, z).numpy())
             fell |= result.fell

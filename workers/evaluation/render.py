@@ -83,7 +83,7 @@ def record_fall_rollouts(
     """
     import torch
 
-    from workers.evaluation.controller import _features, _inference, fall_start
+    from workers.evaluation.controller import evaluation_mode, fall_start
     from workers.sim.env import BatchedSim, without_tracking_termination
 
     if num_rollouts < 1:
@@ -97,9 +97,9 @@ def record_fall_rollouts(
     tail = int(round(FALL_TAIL_S * config.control_hz))
     qpos = [sim.kin_state().qpos]
     end = np.full(num_rollouts, steps)  # the last step shown
-    with _inference(controller):
+    with evaluation_mode(controller):
         for t in range(1, steps + 1):
-            s = _features(sim)
+            s = sim_features(sim)
             z = controller.prior_dist(s).rsample(generator)
             result = sim.step(controller.act(s, z).numpy())
             qpos.append(result.kin.qpos)
@@ -123,7 +123,7 @@ def record_tracking(
     `tracking_error` tracks a segment, for up to `max_seconds` (a one-shot clip: until its last frame)."""
     import torch
 
-    from workers.evaluation.controller import _features, _inference, fall_start
+    from workers.evaluation.controller import evaluation_mode, fall_start
     from workers.sim.env import BatchedSim, without_tracking_termination
 
     config = without_tracking_termination(sim_config)
@@ -132,9 +132,9 @@ def record_tracking(
     sim = BatchedSim(character, library, 1, config, seed=seed)
     sim.reset(np.zeros(1, int), np.array([c]), np.zeros(1, int))
     qpos, ref = [sim.kin_state().qpos[0]], [sim.reference_state().qpos[0]]
-    with _inference(controller):
+    with evaluation_mode(controller):
         for _ in range(steps):
-            s = _features(sim)
+            s = sim_features(sim)
             ref_next = sim.reference_next_features()
             posterior, _ = controller.encode(s, torch.from_numpy(ref_next.astype(np.float32)))
             result = sim.step(controller.act(s, posterior.mean).numpy())

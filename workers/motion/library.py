@@ -105,7 +105,7 @@ class MotionLibrary:
     def state(self, clip_ids: np.ndarray, frames: np.ndarray) -> KinState:
         """Reference states [N] at integer frames (any non-negative integer) of the given clips."""
         clip_ids = np.asarray(clip_ids, dtype=int)
-        rows, cycles = self._rows(clip_ids, np.asarray(frames, dtype=int))
+        rows, cycles = self.rows(clip_ids, np.asarray(frames, dtype=int))
         s = KinState(*(getattr(self, "_" + f)[rows] for f in _FRAME_FIELDS))
         if np.any(cycles):
             yaw, shift = self._cycle_power(clip_ids, cycles)
@@ -115,7 +115,7 @@ class MotionLibrary:
     def body_positions(self, clip_ids: np.ndarray, frames: np.ndarray, body: int) -> np.ndarray:
         """World position [N, 3] of one body at the given frames: `state(...).xpos[:, body]`, cheaply."""
         clip_ids = np.asarray(clip_ids, dtype=int)
-        rows, cycles = self._rows(clip_ids, np.asarray(frames, dtype=int))
+        rows, cycles = self.rows(clip_ids, np.asarray(frames, dtype=int))
         pos = self._xpos[rows, body]
         if np.any(cycles):
             yaw, shift = self._cycle_power(clip_ids, cycles)
@@ -125,14 +125,14 @@ class MotionLibrary:
 
     def features(self, clip_ids: np.ndarray, frames: np.ndarray) -> np.ndarray:
         """The state features s [N, D] of the reference at the given frames (see `state`)."""
-        return self._features[self._rows(np.asarray(clip_ids, dtype=int), np.asarray(frames, dtype=int))[0]]
+        return self._features[self.rows(np.asarray(clip_ids, dtype=int), np.asarray(frames, dtype=int))[0]]
 
     def pd_targets(self, clip_ids: np.ndarray, frames: np.ndarray) -> np.ndarray:
         """[N, A] float32 PD targets holding the reference's joints at the given frames:
         `character.qpos_to_action(state(...).qpos)`, looked up instead of computed."""
-        return self._pd_targets[self._rows(np.asarray(clip_ids, dtype=int), np.asarray(frames, dtype=int))[0]]
+        return self._pd_targets[self.rows(np.asarray(clip_ids, dtype=int), np.asarray(frames, dtype=int))[0]]
 
-    def _rows(self, clip_ids: np.ndarray, frames: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def rows(self, clip_ids: np.ndarray, frames: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Rows of the flat arrays and the number of whole cycles past the clip's end."""
         n = self.num_frames[clip_ids]
         loop = self.loop[clip_ids]
