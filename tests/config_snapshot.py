@@ -8,8 +8,9 @@
 validated config (as a dict) and its stage hash, upstream stages' hashes included (composed as a run would,
 without MLflow); with `--former`, also the hash by the rule before the layout change (the class's module
 path in it), which must equal the stage hash a checkout from before that change records. `history` runs
-the default experiment (with any overrides) in a child process with tracking into a fresh SQLite store and records every metric's history except those that measure time or the machine (throughput/,
-system/, *_s). Used for the layout change (the configs and histories before and after are compared).
+the default experiment (with any overrides) in a child process with tracking into a fresh SQLite store and
+records every metric's history except those that measure time or the machine (throughput/, system/, *_s).
+Used for the layout change (the configs and histories before and after are compared).
 """
 
 from __future__ import annotations

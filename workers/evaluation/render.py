@@ -83,7 +83,7 @@ def record_fall_rollouts(
     """
     import torch
 
-    from workers.evaluation.controller import evaluation_mode, fall_start
+    from workers.evaluation.controller import evaluation_mode, fall_start, sim_features
     from workers.sim.env import BatchedSim, without_tracking_termination
 
     if num_rollouts < 1:
@@ -123,7 +123,7 @@ def record_tracking(
     `tracking_error` tracks a segment, for up to `max_seconds` (a one-shot clip: until its last frame)."""
     import torch
 
-    from workers.evaluation.controller import evaluation_mode, fall_start
+    from workers.evaluation.controller import evaluation_mode, fall_start, sim_features
     from workers.sim.env import BatchedSim, without_tracking_termination
 
     config = without_tracking_termination(sim_config)
