@@ -1,1 +1,1 @@
-"""Benchmarks: `python -m orchestrator.bench {sim} [--json]`."""
+"""Benchmarks: `python -m orchestrator.bench sim|rollout|learners|pipeline|peer|learning|chaos [--json]`."""

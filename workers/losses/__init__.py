@@ -1,0 +1,1 @@
+"""Losses as pure functions of tensors returning `(total, {name: term})`, one module per objective."""
