@@ -101,7 +101,7 @@ class SweepCallback(Callback):
 
     def __getstate__(self) -> dict[str, Any]:
         # Parallel launchers pickle the callbacks into each job; the parent run and the server stay here.
-        return {**self.__dict__, "tracker": None, "server": None}
+        return {**self.__dict__, "logger": None, "server": None}
 
     def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
         from orchestrator.tracking.mlflow import MlflowLogger

@@ -331,7 +331,7 @@ def test_a_checkpoint_that_fits_passes_the_check_untouched(tmp_path, prior_run):
     before = _digest(run_dir)
     cfg = validate(_plain(compose_smoke(run_dir, tmp_path / "cache", "motion=walk", "resume=true")))
     ckpt = max((run_dir / "checkpoints").glob("ckpt-*.pt"))
-    assert preflight.resume_checkpoint(cfg, preflight.world(cfg)) == ckpt
+    assert preflight.resume_checkpoint(cfg, preflight.character_and_clips(cfg)) == ckpt
     preflight.check(cfg)
     assert _digest(run_dir) == before
 

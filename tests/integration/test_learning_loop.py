@@ -13,11 +13,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from hydra import compose, initialize_config_dir
 from mlflow.tracking import MlflowClient
 
 from orchestrator.build import run
-from orchestrator.compose import validate
+from orchestrator.compose import compose, validate
 from orchestrator.world import evaluation_sim_config, load_character_and_library
 from workers.evaluation.controller import tracking_error
 from workers.learners.vae import build_controller
@@ -38,8 +37,7 @@ OVERRIDES = [
 
 @pytest.mark.slow
 def test_default_loop_improves_tracking_in_the_simulator(tmp_path):
-    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
-        cfg = validate(compose("config", overrides=[f"run_dir={tmp_path}", *OVERRIDES]))
+    cfg = validate(compose([f"run_dir={tmp_path}", *OVERRIDES]))
     character, library = load_character_and_library(cfg)
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(0)
