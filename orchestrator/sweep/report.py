@@ -45,13 +45,6 @@ def points(rows: list[dict[str, Any]], compare_by: str, facet_by: str | None = N
     return dict(sorted(out.items(), key=lambda kv: tuple(_sort_key(v) for v in kv[0])))
 
 
-def two_standard_errors(x: np.ndarray, y: np.ndarray) -> float:
-    """Twice the standard error of mean(x) - mean(y) over seeds (NaN with fewer than two seeds on a side)."""
-    if len(x) < 2 or len(y) < 2:
-        return float("nan")
-    return float(2 * np.sqrt(x.var(ddof=1) / len(x) + y.var(ddof=1) / len(y)))
-
-
 def _sort_key(value: str) -> tuple:
     try:
         return (0, float(value), "")

@@ -11,11 +11,9 @@ Child runs are task runs (a task policy on a frozen skill model); rows are `call
 - `prior_claims`: Sec. 5.6's statements on VAE-NC (standard normal prior) against ControlVAE's
   state-conditional prior; the learned (PULSE-style) prior beside them without a claim.
 
-Verdicts (`verdict`): a statement "A is larger than B" is read from d = mean(A) - mean(B) over seeds
-and twice its standard error, 2 sqrt(var_A / n_A + var_B / n_B) (variances with ddof 1):
-"beyond 2 standard errors" in the stated direction agrees, the other way disagrees; "within 2
-standard errors" is not resolved; fewer than two seeds on a side is "one seed: no spread to compare
-with" (d still shown); seeds with identical values (e.g. sharing one skill stage) cannot be judged.
+Verdicts: each statement compares points fixed in advance, by its confidence interval over seeds with a
+correction for the number of statements (`orchestrator.sweep.verdict`): reproduced, contradicted or not
+resolved.
 
 `CLAIMS` and `FIGURES` are what `SweepCallback`'s `claims` and `figures` name.
 """
@@ -30,7 +28,8 @@ import numpy as np
 from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 
-from orchestrator.sweep.report import group, points, two_standard_errors
+from orchestrator.sweep.report import group, points
+from orchestrator.sweep.verdict import LARGER, SMALLER, footnote, judge
 
 SUCCESS = "eval/task_success"
 RETURN = "eval/task_return"
@@ -51,29 +50,6 @@ def seeds(members: list[dict[str, Any]], key: str) -> np.ndarray:
 
 def mean_std(v: np.ndarray, fmt: str = ".3g", unit: str = "") -> str:
     return f"{v.mean():{fmt}} ± {v.std():{fmt}}{unit} ({len(v)})" if len(v) else "n/a"
-
-
-def verdict(
-    a: np.ndarray,
-    b: np.ndarray,
-    fmt: str = ".3g",
-    unit: str = "",
-    words: tuple[str, str, str] = ("agrees", "not resolved", "disagrees"),
-) -> str:
-    """What our seeds say of the statement mean(a) > mean(b) (see the module docstring). words: what a
-    difference beyond 2 standard errors in the stated direction, within them, and beyond the other way mean."""
-    if not len(a) or not len(b):
-        return "n/a: not logged"
-    d = float(a.mean() - b.mean())
-    said = f"difference {d:+{fmt}}{unit}"
-    tse = two_standard_errors(a, b)
-    if np.isnan(tse):
-        return f"{said}; one seed: no spread to compare with"
-    if np.ptp(a) == 0 and np.ptp(b) == 0:
-        return f"{said}; the seeds' values are identical: no spread to compare with"
-    where = "within" if abs(d) <= tse else "beyond"
-    word = words[1] if where == "within" else words[0] if d > 0 else words[2]
-    return f"{said}, {where} 2 standard errors over seeds ({tse:{fmt}}{unit}): {word}"
 
 
 def spearman(x: np.ndarray, y: np.ndarray) -> float:
@@ -187,10 +163,11 @@ def _rank(values: dict[float, np.ndarray]) -> str:
 
 
 def sigma_claims(rows: list[dict[str, Any]], compare_by: str, facet_by: str | None = None) -> str:
-    """PhysicsVAE Sec. 5.5.2 beside ours, per terrain: (a) success and (b) style deviation rise with σ (largest
-    against smallest σ), (c) rough terrain: σ = 0 fails (success <= NEAR_ZERO) where the paper's rough-terrain
-    σ (1.0, else the largest) succeeds more, (d) flat: σ = 0.1 is the best or within 2 standard errors of it."""
-    lines = ["| PhysicsVAE (Sec. 5.5.2) | terrain | ours | verdict |", "| --- | --- | --- | --- |"]
+    """PhysicsVAE Sec. 5.5.2 beside ours, per terrain, each a comparison fixed in advance: (a) success and
+    (b) style deviation rise with σ (the largest against the smallest σ); on rough terrain (c) σ = 0 fails
+    (its success at most NEAR_ZERO) and (d) the paper's rough-terrain σ (1.0, else the largest) succeeds
+    more; on flat ground (e) σ = 0.1 suffices: the largest σ succeeds by less than NEAR_ZERO more."""
+    statements = []  # (statement, terrain, ours, compared, a, b, expected)
     swept: set[float] = set()
     for terrain, members in _facets(rows, facet_by).items():
         by_sigma = {float(s): ms for s, ms in group(members, compare_by).items()}
@@ -200,41 +177,34 @@ def sigma_claims(rows: list[dict[str, Any]], compare_by: str, facet_by: str | No
         lo, hi = min(by_sigma), max(by_sigma)
         if lo == hi:
             continue
-        lines.append(
-            f"| a larger σ adapts more: task success rises with σ | {terrain} | {_per_value(success, '.2f')}; "
-            f"{_rank(success)} | σ = {hi:g} vs σ = {lo:g}: {verdict(success[hi], success[lo], '.2f')} |"
-        )
+        ours = f"{_per_value(success, '.2f')}; {_rank(success)}"
+        vs = f"σ = {hi:g} vs σ = {lo:g}"
+        statements.append(("a larger σ adapts more: task success rises with σ", terrain, ours, vs,
+                           success[hi], success[lo], LARGER, ".2f", ""))  # fmt: skip
         zero = ""
         if len(style.get(0.0, [])):
             z = style[0.0].mean()
             zero = "; σ = 0: 0°, as by construction" if z == 0 else f"; σ = 0: {z:.2f}°, not 0: check the runs"
-        lines.append(
-            f"| a larger σ looks less like the data: style deviation rises with σ | {terrain} | "
-            f"{_per_value(style, '.1f')} (deg); {_rank(style)}{zero} | "
-            f"σ = {hi:g} vs σ = {lo:g}: {verdict(style[hi], style[lo], '.1f', '°')} |"
-        )
+        statements.append(("a larger σ looks less like the data: style deviation rises with σ", terrain,
+                           f"{_per_value(style, '.1f')} (deg); {_rank(style)}{zero}", vs, style[hi], style[lo],
+                           LARGER, ".1f", "°"))  # fmt: skip
         if terrain == "rough" and len(success.get(0.0, [])) and hi > 0:
             helped = 1.0 if len(success.get(1.0, [])) else hi
-            said = verdict(success[helped], success[0.0], ".2f")
-            if success[0.0].mean() > NEAR_ZERO:
-                said += f"; but σ = 0 does not fail (success > {NEAR_ZERO:g})"
-            lines.append(
-                "| rough terrain needs the helper: without it (σ = 0) the policy fails (Fig. 10), with it "
-                f"(σ = 1.0, Sec. 5.3) it succeeds | {terrain} | {_per_value(success, '.2f')} "
-                f"| σ = {helped:g} vs σ = 0: {said} |"
-            )
-        if terrain == "flat" and len(success.get(0.1, [])):
-            best = max((s for s in success if len(success[s])), key=lambda s: success[s].mean())
-            ours = f"σ = 0.1: {mean_std(success[0.1], '.2f')}; best σ = {best:g}: {mean_std(success[best], '.2f')}"
-            if best == 0.1:
-                said = "σ = 0.1 is the best here: agrees"
-            else:
-                words = ("disagrees: a larger σ succeeds more", "agrees: 0.1 is within the best's spread", "agrees")
-                said = f"σ = {best:g} vs σ = 0.1: " + verdict(success[best], success[0.1], ".2f", "", words)
-            lines.append(
-                "| flat ground: σ = 0.1 suffices (the paper's σ for every baseline task, Sec. 5.2; 1.0 on rough "
-                f"terrain) | {terrain} | {ours} | {said} |"
-            )
+            statements.append((f"rough terrain: without the helper (σ = 0) the policy fails (success ≤ {NEAR_ZERO:g}, "
+                               "Fig. 10)", terrain, ours, "σ = 0 (its mean)", success[0.0], None,
+                               (-np.inf, NEAR_ZERO), ".2f", ""))  # fmt: skip
+            statements.append(("rough terrain: with the helper (σ = 1.0, Sec. 5.3) it succeeds more", terrain, ours,
+                               f"σ = {helped:g} vs σ = 0", success[helped], success[0.0], LARGER, ".2f", ""))  # fmt: skip
+        if terrain == "flat" and len(success.get(0.1, [])) and hi > 0.1:
+            statements.append((f"flat ground: σ = 0.1 suffices (the paper's σ for every baseline task, Sec. 5.2): "
+                               f"a larger σ succeeds by less than {NEAR_ZERO:g} more", terrain,
+                               f"σ = 0.1: {mean_std(success[0.1], '.2f')}; σ = {hi:g}: {mean_std(success[hi], '.2f')}",
+                               f"σ = {hi:g} vs σ = 0.1", success[hi], success[0.1], (-np.inf, NEAR_ZERO),
+                               ".2f", ""))  # fmt: skip
+    lines = ["| PhysicsVAE (Sec. 5.5.2) | terrain | ours | compared: verdict |", "| --- | --- | --- | --- |"]
+    for statement, terrain, ours, compared, a, b, expected, fmt, unit in statements:
+        j = judge(a, b, expected, len(statements))
+        lines.append(f"| {statement} | {terrain} | {ours} | {compared}: {j.text(fmt, unit)} |")
     if not facet_by:
         lines.append(
             "| rough terrain needs the helper; flat: σ = 0.1 suffices | all | "
@@ -243,12 +213,12 @@ def sigma_claims(rows: list[dict[str, Any]], compare_by: str, facet_by: str | No
     radians = ", ".join(f"{s:g} ≈ {np.degrees(s):.1f}°" for s in sorted(swept) if s > 0)
     note = f"\nσ is in radians, the bound on each joint-angle offset Δa = σ tanh(H(s, z)): {radians}. "
     note += "Values: means over seeds; mean ± std (number of seeds) where shown so.\n"
-    return "\n".join(lines) + "\n" + note
+    return "\n".join(lines) + "\n" + note + "\n" + footnote(len(statements))
 
 
 def prior_claims(rows: list[dict[str, Any]], compare_by: str, facet_by: str | None = None) -> str:
     """ControlVAE Sec. 5.6 (Fig. 8-9) beside ours: VAE-NC (standard normal prior) against the state-conditional
-    prior; the learned prior beside them, without a claim."""
+    prior, each statement a fixed comparison; the learned prior beside them, without a claim."""
     statements = [  # (statement, measure, key, format, unit, whether VAE-NC should be the larger)
         ("VAE-NC falls more in random sampling", "skill stage: fraction fallen in random sampling, 10 s",
          SKILL_FELL, ".2f", "", True),
@@ -256,23 +226,24 @@ def prior_claims(rows: list[dict[str, Any]], compare_by: str, facet_by: str | No
         ("VAE-NC can hardly follow the target direction", "task success rate", SUCCESS, ".2f", "", False),
         ("... but keeps turning and falling", "time until fall under the task policy (s)", FALL, ".2f", " s", False),
     ]  # fmt: skip
+    facets = _facets(rows, facet_by)
+    claims = len(statements) * len(facets)
     out = []
-    for facet, members in _facets(rows, facet_by).items():
+    for facet, members in facets.items():
         groups = group(members, compare_by)
         lines = [
             "| ControlVAE (Sec. 5.6) | measure | VAE-NC (standard_normal) | ControlVAE (conditional) "
-            "| PULSE-style (learned; no claim here) | verdict |",
+            "| PULSE-style (learned; no claim here) | VAE-NC − ControlVAE: verdict |",
             "| --- | --- | --- | --- | --- | --- |",
         ]
         for statement, measure, key, fmt, unit, nc_larger in statements:
             v = {name: seeds(groups.get(name, []), key) for name in (VAE_NC, CONTROLVAE, LEARNED)}
-            a, b = (VAE_NC, CONTROLVAE) if nc_larger else (CONTROLVAE, VAE_NC)
-            said = f"{PRIOR_NAMES[a]} − {PRIOR_NAMES[b]}: " + verdict(v[a], v[b], fmt, unit)
+            said = judge(v[VAE_NC], v[CONTROLVAE], LARGER if nc_larger else SMALLER, claims).text(fmt, unit)
             cells = " | ".join(mean_std(v[name], fmt) for name in (VAE_NC, CONTROLVAE, LEARNED))
             lines.append(f"| {statement} | {measure} | {cells} | {said} |")
         head = f"### {facet_by} = {facet}\n\n" if facet_by else ""
         out.append(head + "\n".join(lines) + "\n")
-    return "\n".join(out) + "\nCells: mean ± std over seeds (number of seeds).\n"
+    return "\n".join(out) + "\nCells: mean ± std over seeds (number of seeds).\n\n" + footnote(claims)
 
 
 ClaimsTable = Callable[[list[dict[str, Any]], str, str | None], str]

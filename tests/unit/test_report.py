@@ -43,7 +43,7 @@ def test_curve_table_summarises_each_point_over_seeds():
 
 
 def test_alpha_claims_and_the_spread_figure_from_known_rows(tmp_path):
-    """Worked by hand: α = 0 lasts 1 s, α = 1e-3 3 s (3x, beyond the seeds' spread), α = 1e-2 2 s."""
+    """Worked by hand: α = 0 lasts 1 s, α = 1e-3 3 s (3x), α = 1e-2 2 s, two seeds each (±0.1 s)."""
     from orchestrator.sweep.physicsvae import alpha_claims, plot_spread, pooled
 
     rows = []
@@ -51,8 +51,13 @@ def test_alpha_claims_and_the_spread_figure_from_known_rows(tmp_path):
         for seed, t in enumerate(times):
             rows.append({"a": alpha, "seed": seed, "m": t, "s": 0.5, "run_id": f"{alpha}-{seed}"})
     table = alpha_claims(rows, "a", key="m")
-    assert "best α > 0: 3.00 s vs α = 0: 1.00 s, 3.00x; difference +2.00 s, beyond 2 standard errors" in table
-    assert "best α = 0.001 (inside)" in table and "α = 0.01: 2.00 s, 0.67 of the best" in table
+    # d = 2.00 s; variances 0.02 a side, SE 0.1414, Welch df 2, three statements: t(1 - 0.05/6, 2) = 7.649,
+    # so 2.00 ± 1.08 s: reproduced.
+    assert "α = 0.001: 3.00 s (2) vs α = 0: 1.00 s (2) | d = +2.00 s, 98.3% CI [+0.92, +3.08] s: **reproduced**" in table
+    # The best range has only α = 1e-3 here; α = 1e-2 is the only other α > 0: d = +1.00 ± 1.08: not resolved.
+    assert "α in {3e-4, 1e-3, 3e-3}: 3.00 s (2) vs the other α > 0: 2.00 s (2) | d = +1.00 s" in table
+    assert "too large an α degrades | α = 0.01: 2.00 s (2) vs α = 0.001: 3.00 s (2) | d = -1.00 s" in table
+    assert table.count("**not resolved**") == 2
     mean, std = pooled(rows[:2], "m", "s")  # rollouts of two runs: means 0.9 and 1.1, each std 0.5
     assert mean == pytest.approx(1.0) and std == pytest.approx((0.25 + 0.01) ** 0.5)
     plot_spread(rows, "a", "m", "s", "time until fall (s)", tmp_path / "spread.png", level=(2.5, "expert"))

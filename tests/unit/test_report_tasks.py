@@ -21,7 +21,6 @@ from orchestrator.sweep.tasks import (
     prior_claims,
     sigma_claims,
     spearman,
-    verdict,
 )
 
 SIGMA, TERRAIN = "algo.task.sigma", "terrain.kind"
@@ -78,22 +77,6 @@ def prior_rows(n_seeds: int = 3) -> list[dict]:
 def png_size(path: Path) -> tuple[int, int]:
     """(width, height) in pixels, from the PNG's IHDR chunk."""
     return struct.unpack(">II", path.read_bytes()[16:24])
-
-
-def test_verdict_is_beyond_within_or_one_seed():
-    tight_high, tight_low = np.array([1.0, 1.1, 0.9]), np.array([0.0, 0.1, -0.1])
-    # Difference 1.0; each side's variance (ddof 1) is 0.01, so 2 SE = 2 sqrt(0.01/3 + 0.01/3) = 0.163.
-    assert verdict(tight_high, tight_low, ".2f") == (
-        "difference +1.00, beyond 2 standard errors over seeds (0.16): agrees"
-    )
-    assert verdict(tight_low, tight_high, ".2f").endswith("beyond 2 standard errors over seeds (0.16): disagrees")
-    # Difference 0.1 against variances 0.5 each: 2 SE = 2 sqrt(0.25 + 0.25) = 1.41.
-    wide = verdict(np.array([0.5, 1.5]), np.array([0.4, 1.4]), ".2f")
-    assert wide == "difference +0.10, within 2 standard errors over seeds (1.41): not resolved"
-    assert verdict(np.array([1.0]), tight_low, ".2f") == "difference +1.00; one seed: no spread to compare with"
-    # Seeds sharing one skill stage give identical values: no spread to judge by, whatever the difference.
-    assert "identical" in verdict(np.array([0.1, 0.1, 0.1]), np.array([0.3, 0.3, 0.3]))
-    assert verdict(np.array([]), tight_low) == "n/a: not logged"
 
 
 def test_spearman_with_ties_and_without():
@@ -175,49 +158,55 @@ def test_sigma_claims_per_terrain_from_known_rows():
     lines = table.splitlines()
     flat = [line for line in lines if "| flat |" in line]
     rough = [line for line in lines if "| rough |" in line]
-    assert len(flat) == 3 and len(rough) == 3  # (a), (b) on both; (d) on flat, (c) on rough
-    # (a) rough: σ = 1 (0.71) against σ = 0 (0.03): +0.68; variances 0.0002 each, 2 SE = 2 * 0.01414 = 0.03.
-    assert "σ = 1 vs σ = 0: difference +0.68, beyond 2 standard errors over seeds (0.03): agrees" in rough[0]
+    assert len(flat) == 3 and len(rough) == 4  # (a), (b) on both; (e) on flat, (c) and (d) on rough
+    # Seven statements: each interval at 1 - 0.05/7 = 99.3%.
+    assert "7 statements, Bonferroni" in table and "99.3% CI" in rough[0]
+    # (a) rough: σ = 1 (0.71) against σ = 0 (0.03): +0.68, tight seeds (variance 0.0002 a side): reproduced.
+    assert "σ = 1 vs σ = 0: d = +0.68, 99.3% CI [+0.51, +0.85]: **reproduced**" in rough[0]
     # Over the six rough runs σ and success rank together: 16 / sqrt(16 * 17.5) = +0.96.
     assert "Spearman ρ(σ, runs) = +0.96" in rough[0]
-    assert "σ = 0: 0°, as by construction" in rough[1] and "agrees" in rough[1]
-    assert "rough terrain needs the helper" in rough[2] and rough[2].endswith("agrees |")
-    # (d) flat: the best σ (1.0, 0.82) against 0.1 (0.81): +0.01 within 2 SE = 2 sqrt(0.0002/2 + 0.0008/2) = 0.04.
-    assert "best σ = 1: 0.82 ± 0.02 (2)" in flat[2]
-    assert "within 2 standard errors over seeds (0.04): agrees: 0.1 is within the best's spread" in flat[2]
+    # (b) style: σ = 0 is 0° by construction; its two identical seeds leave Welch one degree of freedom.
+    assert "σ = 0: 0°, as by construction" in rough[1] and rough[1].endswith("**not resolved** |")
+    assert "without the helper (σ = 0) the policy fails" in rough[2] and "mean = +0.03" in rough[2]
+    assert "with the helper (σ = 1.0, Sec. 5.3) it succeeds more" in rough[3] and rough[3].endswith("**reproduced** |")
+    # (e) flat: σ = 1.0 (0.82) against 0.1 (0.81) with two seeds: the interval reaches past the 0.1 margin.
+    assert "σ = 1: 0.82 ± 0.02 (2)" in flat[2] and flat[2].endswith("**not resolved** |")
     assert "0.1 ≈ 5.7°" in table and "1 ≈ 57.3°" in table
 
 
 def test_sigma_claims_verdicts_flip_with_the_spread_and_the_seeds():
     rows = sigma_rows()
+    for r in [r for r in rows if r["seed"] == "0"]:  # a third seed on every point, 0.01 above the first
+        rows.append({**r, "seed": "2", "run_id": r["run_id"][:-1] + "2", "eval/task_success": r["eval/task_success"] + 0.01})
     # Flat σ = 1.0 far above σ = 0.1 with tight seeds: σ = 0.1 no longer suffices.
     for r in rows:
         if r[TERRAIN] == "flat" and r[SIGMA] == "1.0":
-            r["eval/task_success"] += 0.15
+            r["eval/task_success"] += 0.5
     flat = [line for line in sigma_claims(rows, SIGMA, TERRAIN).splitlines() if "flat ground" in line][0]
-    assert "beyond 2 standard errors" in flat and "disagrees: a larger σ succeeds more" in flat
-    # Rough σ = 0 succeeding half the time: the helper is still better, but σ = 0 does not fail.
+    assert flat.endswith("**contradicted** |")
+    # Rough σ = 0 succeeding half the time: it does not fail.
     for r in rows:
         if r[TERRAIN] == "rough" and r[SIGMA] == "0.0":
-            r["eval/task_success"] = 0.5
-    rough = [line for line in sigma_claims(rows, SIGMA, TERRAIN).splitlines() if "needs the helper" in line][0]
-    assert "but σ = 0 does not fail" in rough
+            r["eval/task_success"] = 0.5 + 0.01 * int(r["seed"])
+    fails = [line for line in sigma_claims(rows, SIGMA, TERRAIN).splitlines() if "policy fails" in line][0]
+    assert fails.endswith("**contradicted** |")
     one = sigma_claims(sigma_rows(1), SIGMA, TERRAIN)
-    assert "one seed: no spread to compare with" in one and "beyond" not in one and "within" not in one
+    assert one.count("fewer than two seeds on a side") == 7 and "**reproduced**" not in one
     assert "needs the terrain as the second axis" in sigma_claims(sigma_rows(), SIGMA, None)
 
 
 def test_prior_claims_compare_vae_nc_with_controlvae_from_known_rows():
     table = prior_claims(prior_rows(), PRIOR)
     falls = [line for line in table.splitlines() if "falls more in random sampling" in line][0]
-    # VAE-NC 0.8, 0.9, 1.0 against 0.1, 0.2, 0.0: +0.80; variances 0.01 each, 2 SE = 2 sqrt(0.02/3) = 0.16.
+    # VAE-NC 0.8, 0.9, 1.0 against 0.1, 0.2, 0.0: +0.80; variances 0.01 a side, Welch df 4, four statements:
+    # t(1 - 0.05/8, 4) = 4.29, so 0.80 ± 4.29 · 0.0816 = [+0.45, +1.15].
     assert "| 0.90 ± 0.08 (3) | 0.10 ± 0.08 (3) | 0.30 ± 0.00 (3) |" in falls  # learned beside them
-    assert falls.endswith("VAE-NC − ControlVAE: difference +0.80, beyond 2 standard errors over seeds (0.16): agrees |")
+    assert falls.endswith("d = +0.80, 98.8% CI [+0.45, +1.15]: **reproduced** |")
     fall_time = [line for line in table.splitlines() if "keeps turning and falling" in line][0]
-    assert "ControlVAE − VAE-NC: difference +6.00 s, beyond" in fall_time and fall_time.endswith("agrees |")
+    assert "d = -6.00 s" in fall_time and fall_time.endswith("**reproduced** |")
     assert "PULSE-style (learned; no claim here)" in table
     one = prior_claims(prior_rows(1), PRIOR)
-    assert one.count("one seed: no spread to compare with") == 4
+    assert one.count("fewer than two seeds on a side") == 4
 
 
 def test_the_sweep_looks_claims_up_in_both_registries_and_refuses_unknown_names():
@@ -225,7 +214,7 @@ def test_the_sweep_looks_claims_up_in_both_registries_and_refuses_unknown_names(
         {"b": "0", "seed": "0", "eval/time_until_fall_mean": 0.5},
         {"b": "2.0", "seed": "0", "eval/time_until_fall_mean": 9.0},
     ]
-    assert "β = 0: 0.50 s" in claims_table("physicsvae_kl", rows, "b", None)
+    assert "| 0.50 s (1) |" in claims_table("physicsvae_kl", rows, "b", None)
     assert "| flat |" in claims_table("task_sigma", sigma_rows(), SIGMA, TERRAIN)
     with pytest.raises(ValueError, match="callbacks.sweep.claims: unknown table 'task_sigmas'"):
         SweepCallback(claims="task_sigmas")
@@ -290,6 +279,6 @@ def test_the_sweep_end_writes_the_faceted_comparison(tmp_path, monkeypatch):
     text = (tmp_path / "comparison.md").read_text()
     assert "| terrain.kind | algo.task.sigma | seeds | task success rate |" in text
     assert "| rough | 0.1 | 2 | 0.310 ± 0.010 |" in text
-    assert "rough terrain needs the helper" in text and "Sec. 5.5.2" in text
+    assert "rough terrain: with the helper" in text and "Sec. 5.5.2" in text
     # The curve no run logged has no panel: two curves left, two terrains -> 2 x 2 panels.
     assert png_size(tmp_path / "curves.png") == (900, 700)

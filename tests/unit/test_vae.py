@@ -108,11 +108,52 @@ def test_physicsvae_alpha_zero_is_behaviour_cloning():
     a, e = torch.ones(2, 1, 3), torch.zeros(2, 1, 3)
     s_pred, s_true = torch.zeros(2, 1, 4), torch.ones(2, 1, 4)
     kl = torch.full((2, 1), 2.0)
-    total, terms = physicsvae_loss(a, e, s_pred, s_true, kl, alpha=0.0, beta=2.0)
+    total, terms = physicsvae_loss(a, e, s_pred, s_true, kl, alpha=0.0, beta=2.0, reduction="sum")
     assert float(terms["bc"]) == 3.0 and float(terms["sim"]) == 4.0
     assert float(total) == 3.0 + 2.0 * 2.0
-    total_alpha, _ = physicsvae_loss(a, e, s_pred, s_true, kl, alpha=0.5, beta=2.0)
+    total_alpha, _ = physicsvae_loss(a, e, s_pred, s_true, kl, alpha=0.5, beta=2.0, reduction="sum")
     assert float(total_alpha) == float(total) + 0.5 * 4.0
+
+
+def test_physicsvae_default_reduction_is_the_authors_mean_squared_error():
+    """Worked by hand: errors (1, 2, 3) on A = 3 actions and (2, 0, 0, 0) on D = 4 features; the KL 0.5
+    and 1.5 over two samples. The authors' nn.MSELoss: bc = (1 + 4 + 9) / 3, sim = 4 / 4; the KL stays
+    summed over the latent and averaged over the batch: 1.0."""
+    a = torch.tensor([[[1.0, 2.0, 3.0]], [[1.0, 2.0, 3.0]]])
+    e = torch.zeros(2, 1, 3)
+    s_pred, s_true = torch.tensor([[[2.0, 0, 0, 0]], [[2.0, 0, 0, 0]]]), torch.zeros(2, 1, 4)
+    kl = torch.tensor([[0.5], [1.5]])
+    total, terms = physicsvae_loss(a, e, s_pred, s_true, kl, alpha=1e-4, beta=2.0)
+    torch.testing.assert_close(terms["bc"], torch.tensor(14 / 3))
+    torch.testing.assert_close(terms["sim"], torch.tensor(1.0))
+    torch.testing.assert_close(terms["kl"], torch.tensor(1.0))
+    torch.testing.assert_close(total, torch.tensor(14 / 3 + 1e-4 + 2.0))
+    # the same batch as Eq. 1 is printed: sums over the dimensions
+    total_sum, terms_sum = physicsvae_loss(a, e, s_pred, s_true, kl, alpha=1e-4, beta=2.0, reduction="sum")
+    torch.testing.assert_close(terms_sum["bc"], torch.tensor(14.0))
+    torch.testing.assert_close(terms_sum["sim"], torch.tensor(4.0))
+    torch.testing.assert_close(total_sum, torch.tensor(14.0 + 4e-4 + 2.0))
+    with pytest.raises(ValueError, match="reduction"):
+        physicsvae_loss(a, e, s_pred, s_true, kl, alpha=1e-4, beta=2.0, reduction="max")
+
+
+def test_the_physicsvae_learner_uses_the_configured_reduction(walk_run):
+    """One batch, one seed, two learners: the mean reduction's bc and sim terms are the sum's divided by
+    A = 28 and D = 15·16 + 3 = 243, the KL is the same, and an unknown reduction names its key."""
+    terms = {}
+    for reduction in ("mean", "sum"):
+        torch.manual_seed(0)
+        learner = small_learner("physicsvae", "standard_normal", physicsvae_reduction=reduction)
+        batch = random_batch(walk_run)
+        learner.before_update(batch)
+        with torch.no_grad():
+            _, terms[reduction] = learner.loss(batch)
+    torch.testing.assert_close(terms["mean"]["bc"] * 28, terms["sum"]["bc"])
+    torch.testing.assert_close(terms["mean"]["sim"] * 243, terms["sum"]["sim"])
+    torch.testing.assert_close(terms["mean"]["kl"], terms["sum"]["kl"])
+    assert float(terms["mean"]["sim"]) > 0
+    with pytest.raises(ValueError, match="vae.physicsvae_reduction"):
+        VAEConfig(objective="physicsvae", prior="standard_normal", physicsvae_reduction="max")
 
 
 def test_pulse_regularises_consecutive_latents():

@@ -22,7 +22,7 @@ import torch
 from workers.body.features import StateLayout
 from workers.learners.base import Learner, Schedule, Weights, as_tensor, make_optimizer
 from workers.losses.kl import gaussian_kl
-from workers.losses.vae import controlvae_loss, physicsvae_loss, pulse_loss
+from workers.losses.vae import PHYSICSVAE_REDUCTIONS, controlvae_loss, physicsvae_loss, pulse_loss
 from workers.models import body_state
 from workers.models.vae import PRIOR_TYPES, VAEController
 from workers.models.world_model import WorldModel
@@ -69,6 +69,9 @@ class VAEConfig:
     beta: Schedule = field(default_factory=lambda: Schedule(0.01, 0.1, kind="staircase", steps=40_000, every=4_000))
     # α, PhysicsVAE's simulation-consistency weight (Table 1: 1e-4).
     alpha: float = 1e-4
+    # How PhysicsVAE's Eq. 1 reduces its squared errors over the action and state dimensions: mean (the
+    # authors' nn.MSELoss, the scale of Table 1's α and β and of Fig. 9's α axis) | sum (Eq. 1 as printed).
+    physicsvae_reduction: str = "mean"
     # λ on PULSE's latent smoothness L_regu.
     lambda_regu: float = 0.01
     # Action regularisation of Eq. 12: L1 and squared-L2 weights.
@@ -84,6 +87,11 @@ class VAEConfig:
             raise ValueError(f"vae.objective: unknown objective {self.objective!r}; expected one of {OBJECTIVES}")
         if self.prior not in PRIOR_TYPES:
             raise ValueError(f"vae.prior: unknown prior type {self.prior!r}; expected one of {PRIOR_TYPES}")
+        if self.physicsvae_reduction not in PHYSICSVAE_REDUCTIONS:
+            raise ValueError(
+                f"vae.physicsvae_reduction: unknown reduction {self.physicsvae_reduction!r}; "
+                f"expected one of {PHYSICSVAE_REDUCTIONS}"
+            )
         if self.objective == "physicsvae" and self.prior != "standard_normal":
             raise ValueError(
                 f"vae.prior: the physicsvae objective has its KL to N(0, I) (PhysicsVAE Eq. 1), so the prior "
@@ -228,7 +236,8 @@ class VAELearner(Learner):
         else:
             predicted_next = s[:, 1:]
         kl = gaussian_kl(q.mean, q.log_std, p.mean, p.log_std)
-        return physicsvae_loss(a, expert_actions, predicted_next, s[:, 1:], kl, self.config.alpha, self.beta)
+        c = self.config
+        return physicsvae_loss(a, expert_actions, predicted_next, s[:, 1:], kl, c.alpha, self.beta, c.physicsvae_reduction)
 
     def _pulse(self, states: torch.Tensor, reference: torch.Tensor, teacher_actions: torch.Tensor):
         s = body_state.features(states[:, :-1])

@@ -14,6 +14,9 @@ from __future__ import annotations
 
 import torch
 
+# How Eq. 1's squared errors are reduced over their dimensions (see `physicsvae_loss`).
+PHYSICSVAE_REDUCTIONS = ("mean", "sum")
+
 
 def discounts(steps: int, gamma: float, like: torch.Tensor) -> torch.Tensor:
     """γ^t for t < steps, normalised to sum to one, [T]."""
@@ -54,16 +57,26 @@ def physicsvae_loss(
     kl: torch.Tensor,
     alpha: float,
     beta: float,
+    reduction: str = "mean",
 ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
-    """PhysicsVAE's Eq. 1: Σ‖a − a'‖² + α·‖s_{t+1} − s'_{t+1}‖² + β·KL(N(μ, σ) ‖ N(0, I)).
+    """PhysicsVAE's Eq. 1: ‖a − a'‖² + α·‖s_{t+1} − s'_{t+1}‖² + β·KL(N(μ, σ) ‖ N(0, I)).
 
     actions, expert_actions: [N, T, A] the decoder's and the expert's actions.
     predicted_next, next_states: [N, T, D] features of W(s_t, a') and of the expert's s_{t+1}.
-    kl: [N, T]. With α = 0 the simulation term drops out: plain behaviour cloning.
+    kl: [N, T], summed over the latent. With α = 0 the simulation term drops out: plain behaviour cloning.
+    reduction: how the squared errors are reduced over their dimensions before the mean over the batch.
+      "mean": averaged over the A action and D state dimensions, as the authors' trainer does
+              (`nn.MSELoss`); Table 1's α = 1e-4, β = 2 and Fig. 9's α axis were set with it.
+      "sum":  summed over them, Eq. 1 as printed; then α weighs the state term D / A times more
+              against the actions than the paper's α does, and β weighs the KL A times less.
+    The KL is summed over the latent under both, as in the authors' code.
     """
+    if reduction not in PHYSICSVAE_REDUCTIONS:
+        raise ValueError(f"reduction must be one of {PHYSICSVAE_REDUCTIONS}, got {reduction!r}")
+    reduce = (lambda e: e.mean(-1)) if reduction == "mean" else (lambda e: e.sum(-1))
     terms = {
-        "bc": ((actions - expert_actions) ** 2).sum(-1).mean(),
-        "sim": ((predicted_next - next_states) ** 2).sum(-1).mean(),
+        "bc": reduce((actions - expert_actions) ** 2).mean(),
+        "sim": reduce((predicted_next - next_states) ** 2).mean(),
         "kl": kl.mean(),
     }
     return terms["bc"] + alpha * terms["sim"] + beta * terms["kl"], terms
