@@ -324,16 +324,17 @@ class TrackingConfig:
 
 @dataclass
 class EvalConfig:
-    # Time-until-fall (PhysicsVAE Fig. 9): rollouts from one standing start, z from the prior every step.
+    # Time-until-fall (PhysicsVAE Fig. 9): rollouts from one fixed start, the walk clip's frame 0 (mid-stride,
+    # not a standing pose: the paper does not say its start), z from the prior every step.
     fall_rollouts: int = 100
     fall_max_seconds: float = 60.0
     # Tracking error (ControlVAE Fig. 14): every clip cut into consecutive segments of this many
     # seconds, each tracked with the posterior from its first frame.
     tracking_seconds: float = 2.0
     # Random sampling (ControlVAE Fig. 5): rollouts from random dataset states, z from the prior for
-    # random_steps control steps (200: 10 s at the paper's 20 Hz, 6.7 s at our 30 Hz).
+    # random_seconds of simulated time (ControlVAE: 200 steps at its 20 Hz = 10 s; 300 steps at our 30 Hz).
     random_rollouts: int = 32
-    random_steps: int = 200
+    random_seconds: float = 10.0
     # Pose error after dynamic time warping (AMP Eq. 10, Table 3): episodes of up to pose_seconds
     # from random reference starts, deterministic actions (AMP: 32 episodes of up to 20 s per seed).
     pose_episodes: int = 32
@@ -358,15 +359,15 @@ class EvalConfig:
     def __post_init__(self) -> None:
         if self.video_rollouts < 0 or self.video_seconds <= 0 or min(self.video_width, self.video_height) < 16:
             raise ConfigError("eval.video_rollouts must be >= 0, eval.video_seconds positive, video size >= 16 px")
-        for key in ("fall_rollouts", "random_rollouts", "random_steps"):
+        for key in ("fall_rollouts", "random_rollouts"):
             if getattr(self, key) < 1:
                 raise ConfigError(f"eval.{key} must be at least 1, got {getattr(self, key)}")
         if self.task_goals < 1 or self.task_seconds <= 0:
             raise ConfigError("eval.task_goals must be at least 1 and eval.task_seconds positive")
         if self.pose_episodes < 1 or self.pose_seconds <= 0:
             raise ConfigError("eval.pose_episodes must be at least 1 and eval.pose_seconds positive")
-        if self.fall_max_seconds <= 0 or self.tracking_seconds <= 0:
-            raise ConfigError("eval.fall_max_seconds and eval.tracking_seconds must be positive")
+        if self.fall_max_seconds <= 0 or self.tracking_seconds <= 0 or self.random_seconds <= 0:
+            raise ConfigError("eval.fall_max_seconds, eval.tracking_seconds and eval.random_seconds must be positive")
 
 
 @dataclass

@@ -152,8 +152,9 @@ class GoalSampler:
 class SuccessTracker:
     """Whether each episode met its goals (constants above):
 
-      vr          PULSE's: at every step the tracked points' mean distance to their targets is at most
-                  SUCCESS_RADIUS_M (with all_points, every point's distance: stricter), and no fall
+      vr          PULSE's rule: at every step the tracked points' mean distance to their targets is at most
+                  SUCCESS_RADIUS_M (with all_points, every point's distance: stricter); and no fall, a
+                  clause of ours (PULSE's has none)
       point_goal  every judged goal (in force POINT_GOAL_MIN_S) brought the root within SUCCESS_RADIUS_M
                   of the target horizontally at some step, and no fall
       heading     every judged goal, over its last WINDOW_S: mean heading error < HEADING_TOL_RAD and mean

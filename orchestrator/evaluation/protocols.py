@@ -1,12 +1,13 @@
 """Evaluation in the loop: the papers' protocols on the current weights, as metrics, JSON and plots.
 
-- time-until-fall (PhysicsVAE Fig. 9): one standing start, z from the prior every
+- time-until-fall (PhysicsVAE Fig. 9): one fixed start (the walk clip's frame 0, mid-stride: the paper
+  does not say its start, and ours is not a standing pose), z from the prior every
   control step, `eval.fall_rollouts` rollouts capped at `eval.fall_max_seconds`.
 - tracking error (ControlVAE Fig. 14): every clip divided into consecutive segments of
   `eval.tracking_seconds`, each tracked with the posterior; mean body-position error
   relative to the root, per clip and over all segments.
 - random sampling (ControlVAE Fig. 5): `eval.random_rollouts` rollouts of
-  `eval.random_steps` control steps from random dataset states, z from the prior;
+  `eval.random_seconds` (10 s, ControlVAE's) from random dataset states, z from the prior;
   the share that fell and the distance travelled, with the roots' paths as a figure.
 - pose error after dynamic time warping (AMP Eq. 10, Table 3), for PPO policies:
   `eval.pose_episodes` episodes of up to `eval.pose_seconds`, with a figure of the
@@ -120,7 +121,7 @@ def _controller_protocols(
             character,
             library,
             num_rollouts=cfg.eval.random_rollouts,
-            steps=cfg.eval.random_steps,
+            seconds=cfg.eval.random_seconds,
             sim_config=evaluation_sim_config(cfg),
             seed=cfg.seed,
         )

@@ -130,7 +130,7 @@ def test_the_physicsvae_and_pulse_stages_run_on_ray_actors(smoke, tmp_path):
     assert all(r.info.status == "FINISHED" for r in runs)
     assert by_algo["demos"][0].data.metrics["demos/episodes"] == 2  # one clip, two rollouts at smoke scale
     assert "eval/time_until_fall_mean" in by_algo["physicsvae"][0].data.metrics
-    assert "eval/success_rate" in by_algo["pulse"][0].data.metrics
+    assert "eval/success_rate_pulse" in by_algo["pulse"][0].data.metrics
 
 
 def test_a_task_stage_runs_on_ray_with_either_trainer(smoke, tmp_path):

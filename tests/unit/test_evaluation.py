@@ -140,7 +140,7 @@ def test_tracking_segments_divide_every_clip_into_consecutive_pieces(character, 
 
 def test_random_sampling_starts_anywhere_and_reports_falls_and_distance(character, walk_run):
     c = controller(character)
-    out = random_sampling(c, character, walk_run, num_rollouts=6, steps=40, seed=3)
+    out = random_sampling(c, character, walk_run, num_rollouts=6, seconds=40 / 30, seed=3)
     roots = out["roots"]
     assert roots.shape == (6, 41, 2) and np.allclose(roots[:, 0], 0.0)
     assert out["fell"] == 1.0  # the untrained T-pose topples within 40 steps
@@ -148,6 +148,6 @@ def test_random_sampling_starts_anywhere_and_reports_falls_and_distance(characte
     path = np.linalg.norm(np.diff(roots, axis=1), axis=-1).sum(1).mean()
     assert out["distance"] == pytest.approx(end) and out["path"] == pytest.approx(path)
     assert out["distance"] <= out["path"] + 1e-12
-    again = random_sampling(c, character, walk_run, num_rollouts=6, steps=40, seed=3)
+    again = random_sampling(c, character, walk_run, num_rollouts=6, seconds=40 / 30, seed=3)
     np.testing.assert_array_equal(again["roots"], roots)
     assert c.training

@@ -66,7 +66,7 @@ def small_config(**eval_overrides) -> Config:
         fall_max_seconds=1.0,
         tracking_seconds=0.5,
         random_rollouts=1,
-        random_steps=5,
+        random_seconds=0.2,
         video_seconds=0.5,
         video_width=64,
         video_height=48,

@@ -29,7 +29,7 @@ def test_gaussian_kl_matches_torch_distributions():
     torch.testing.assert_close(gaussian_kl(mq, lq, zero, zero), expected)
 
 
-def test_conditional_prior_kl_is_controlvae_eq9():
+def test_conditional_prior_kl_is_controlvae_eq11():
     # q = N(μ_p + μ_q, σ_p²), p = N(μ_p, σ_p²): KL = ‖μ_q‖² / (2σ_p²). With μ_q = (0.3, 0.4), σ_p = 0.3:
     # 0.25 / 0.18 = 1.3889.
     mu_p = torch.tensor([[1.0, -2.0]])

@@ -214,20 +214,23 @@ def random_sampling(
     character: Character,
     library: MotionLibrary,
     num_rollouts: int = 32,
-    steps: int = 200,
+    seconds: float = 10.0,
     sim_config: SimConfig | None = None,
     seed: int = 0,
 ) -> dict:
-    """ControlVAE's random sampling (Fig. 5): from random dataset states, z ~ p(z | s) every control step.
+    """ControlVAE's random sampling (Fig. 5): from random dataset states, z ~ p(z | s) every control step,
+    for `seconds` of simulated time (ControlVAE: 200 steps at its 20 Hz, 10 s), round(seconds · control_hz)
+    control steps at the simulator's rate.
 
     Starts are drawn uniformly over the library's frames (never a one-shot clip's last); nothing ends a
     rollout. Returns {"fell": fraction of rollouts that fell at least once, "distance": mean horizontal
     distance (m) from the start to the end, "path": mean horizontal path length of the root (m),
     "roots": [R, steps + 1, 2] root positions relative to each start, for the figure}.
     """
-    if num_rollouts < 1 or steps < 1:
-        raise ValueError(f"need num_rollouts >= 1 and steps >= 1, got {num_rollouts} and {steps}")
     config = without_tracking_termination(sim_config)
+    steps = round(seconds * config.control_hz)
+    if num_rollouts < 1 or steps < 1:
+        raise ValueError(f"need num_rollouts >= 1 and at least one control step, got {num_rollouts} and {seconds} s")
     rng = np.random.default_rng(seed)
     usable = np.ones(library.total_frames, bool)
     usable[(library.offsets + library.num_frames - 1)[~library.loop & (library.num_frames > 1)]] = False

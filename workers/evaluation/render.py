@@ -2,7 +2,7 @@
 
 Recording (simulation, no GL):
 - `record_fall_rollouts`: time-until-fall rollouts as `workers.evaluation.controller.time_until_fall` runs them
-  (the fixed standing start, z from the prior every control step), each cut one second after its
+  (the fixed start, the walk clip's frame 0, z from the prior every control step), each cut one second after its
   first fall.
 - `record_tracking`: one clip tracked with the posterior, as `workers.evaluation.controller.tracking_error` does,
   with the reference's qpos beside it (drawn as a ghost).

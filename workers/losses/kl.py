@@ -11,7 +11,8 @@ def gaussian_kl(
     """KL(N(μ_q, σ_q²) ‖ N(μ_p, σ_p²)) [...] summed over the last (latent) dimension of [..., Z] inputs.
 
     Per dimension: log(σ_p/σ_q) + (σ_q² + (μ_q − μ_p)²) / (2σ_p²) − ½.
-    With σ_q = σ_p and μ_q = μ_p + r this is ‖r‖² / (2σ_p²), ControlVAE's Eq. 9;
+    With σ_q = σ_p and μ_q = μ_p + r this is ‖r‖² / (2σ_p²), ControlVAE's KL term
+    (Eq. 11; Eq. 9 as printed has a typo);
     with μ_p = 0, σ_p = 1 it is the usual VAE term.
     """
     var_ratio = torch.exp(2 * (log_std_q - log_std_p))
