@@ -79,6 +79,11 @@ def test_ablation_gp_names_its_loss_and_penalty_placement():
     cfg = composed("+experiment=ablation_gp", hydra=True)
     assert cfg.algo.name == "amp" and cfg.motion.clips == ["humanoid3d_walk"]
     assert cfg.algo.discriminator.loss == "lsgan" and cfg.algo.discriminator.gp_on == "data"
+    assert cfg.algo.discriminator.gp_features == "raw"  # Eq. 8 on Φ as written; algo=amp keeps the normalised
+    assert validate(composed("algo=amp")).algo.discriminator.gp_features == "normalised"
+    paper = validate(composed("algo=amp", "scale=paper")).algo.discriminator  # Table 4: SGD, momentum 0.9, 1e-5
+    assert (paper.optimizer, paper.momentum, paper.lr) == ("sgd", 0.9, 1e-5)
+    assert validate(composed("algo=amp", "scale=laptop")).algo.discriminator.optimizer == "adam"
     params = cfg.hydra.sweeper.params
     assert params["algo.discriminator.w_gp"] == "0,1,10,40" and params["seed"] == "0,1,2"
     assert cfg.hydra.callbacks.sweep.compare_by == "algo.discriminator.w_gp"
@@ -119,6 +124,9 @@ def test_bad_values_are_refused_with_their_key(override, message):
         (("algo=amp", "algo.discriminator.w_gp=-1"), "algo.discriminator: w_gp and logit_reg must be non-negative"),
         (("algo=amp", "algo.discriminator.gp_on=policy"), "algo.discriminator: unknown gradient penalty placement"),
         (("algo=amp", "algo.ppo.optimizer=rmsprop"), "algo.ppo: PPOConfig.optimizer must be"),
+        (("algo=physicsvae", "algo.vae.physicsvae_reduction=max"), "algo.vae.physicsvae_reduction: unknown"),
+        (("algo=amp", "algo.discriminator.gp_features=whitened"), "algo.discriminator: gp_features: unknown"),
+        (("algo=amp", "algo.discriminator.optimizer=lbfgs"), "algo.discriminator: optimizer: unknown"),
     ],
 )
 def test_method_sections_are_checked_with_their_key(overrides, message):

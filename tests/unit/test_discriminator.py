@@ -204,6 +204,52 @@ def test_penalising_policy_samples_adds_to_the_penalty():
     assert t_both["gp"] > t_data["gp"]
 
 
+def test_the_learners_penalty_is_taken_on_the_data_side_by_hand():
+    """gp_data is (w_gp/2)·E‖∇D‖² at the data samples, computed here by autograd on the module directly:
+    a learner that penalised the policy samples instead (or took the batch's other side) fails this."""
+    batch = random_batch(0, shift=3.0)
+    for features in ("normalised", "raw"):
+        learner = DiscriminatorLearner(OBS, small_config(gp_features=features), seed=1)
+        learner.module.update_normalizer(torch.from_numpy(batch.data_obs) * 4.0)  # std far from 1
+        terms = learner.evaluate(batch)
+
+        def by_hand(obs: np.ndarray, features: str = features, learner: DiscriminatorLearner = learner) -> float:
+            raw = torch.from_numpy(obs).requires_grad_(True)
+            normalised = learner.module.normalize(raw).detach().requires_grad_(True)
+            x = raw if features == "raw" else normalised
+            d = learner.module.logits(learner.module.normalize(raw) if features == "raw" else normalised)
+            (grad,) = torch.autograd.grad(d.sum(), x)
+            return float(0.5 * 10.0 * grad.pow(2).sum(-1).mean())
+
+        assert terms["gp_data"] == pytest.approx(by_hand(batch.data_obs), rel=1e-5)
+        assert terms["gp_data"] != pytest.approx(by_hand(batch.policy_obs), rel=1e-2)
+
+
+def test_raw_feature_penalty_is_the_normalised_one_over_the_variance():
+    """Chain rule: with φ_n = (φ − μ)/s, ∇_φ D = ∇_{φ_n} D / s. With s = 2 on every feature (data at ±2),
+    the raw penalty is a quarter of the normalised one (AMP's Eq. 8 is on the raw Φ)."""
+    data = np.concatenate([np.full((4, 2 * OBS), 2.0), np.full((4, 2 * OBS), -2.0)]).astype(np.float32)
+    batch = DiscriminatorBatch(data, data + 1.0)
+    gp = {}
+    for features in ("normalised", "raw"):
+        learner = DiscriminatorLearner(OBS, small_config(gp_features=features), seed=1)
+        learner.module.update_normalizer(torch.from_numpy(data))
+        torch.testing.assert_close(learner.module.normalizer.std, torch.full((OBS,), 2.0, dtype=torch.float64))
+        gp[features] = learner.evaluate(batch)["gp_data"]
+    assert gp["raw"] == pytest.approx(gp["normalised"] / 4, rel=1e-5)
+    with pytest.raises(ValueError, match="gp_features: unknown"):
+        DiscriminatorConfig(gp_features="whitened")
+
+
+def test_table_4s_sgd_with_momentum_is_the_optimiser_when_asked():
+    sgd = DiscriminatorLearner(OBS, small_config(optimizer="sgd", lr=1e-5, momentum=0.9), seed=0)
+    assert isinstance(sgd.optimizer, torch.optim.SGD)
+    assert sgd.optimizer.param_groups[0]["momentum"] == 0.9 and sgd.optimizer.param_groups[0]["lr"] == 1e-5
+    assert isinstance(DiscriminatorLearner(OBS, small_config(), seed=0).optimizer, torch.optim.Adam)
+    with pytest.raises(ValueError, match="optimizer: unknown"):
+        DiscriminatorConfig(optimizer="lbfgs")
+
+
 def test_update_reports_metrics_and_learns_a_separable_toy():
     learner = DiscriminatorLearner(OBS, small_config(replay_mix=0.5), seed=0)
     for i in range(150):

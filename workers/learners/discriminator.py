@@ -33,6 +33,8 @@ from workers.losses.discriminator import (
 from workers.models.discriminator import Discriminator
 
 GP_ON = ("data", "data_and_policy")
+GP_FEATURES = ("normalised", "raw")
+DISC_OPTIMIZERS = ("adam", "sgd")
 
 
 @dataclass
@@ -48,17 +50,24 @@ class DiscriminatorConfig:
     # "lsgan" (AMP Eq. 6-7: targets +1/-1, reward max(0, 1 - 0.25 (D-1)²)) or "bce" (GAIL's cross-entropy).
     loss: str = "lsgan"
     # Gradient penalty weight w_gp of (w_gp/2)·E‖∇_φ D‖² (AMP Eq. 8, Table 4: 10; ControlVAE's w_g = 20
-    # has no ½, i.e. w_gp = 40 here). The gradient is taken w.r.t. the normalised features.
+    # has no ½, i.e. w_gp = 40 here).
     w_gp: float = 10.0
+    # What φ the penalty's gradient is taken against: "raw", the features Φ(s), Φ(s') as AMP's Eq. 8 writes
+    # them, or "normalised", the normaliser's output, which weighs each raw gradient component by its
+    # feature's variance (1e-4 to 10 on the walk), so its w_gp is not AMP's.
+    gp_features: str = "normalised"
     # Where the penalty applies: "data" (AMP Eq. 8) or "data_and_policy" (the two penalties summed, as in
     # some public implementations).
     gp_on: str = "data"
     # Weight of w·‖W‖² on the logit layer's weights; 0 turns it off (AMP does not use it).
     logit_reg: float = 0.0
-    # Adam's (L2) weight decay on every parameter; 0 turns it off.
+    # (L2) weight decay on every parameter; 0 turns it off.
     weight_decay: float = 0.0
-    # Adam step size. AMP Table 4 uses 1e-5 with SGD (momentum 0.9); 1e-4 with Adam learns the walk/run
-    # separation of tests/learning in a few hundred steps and is the default here.
+    # Optimiser, "adam" or "sgd" (with `momentum`), and its step size. AMP's Table 4 is SGD, momentum 0.9,
+    # 1e-5 (scale=paper); Adam at 1e-4 learns the walk/run separation of tests/learning in a few hundred
+    # steps and is the default at the smaller scales.
+    optimizer: str = "adam"
+    momentum: float = 0.9
     lr: float = 1e-4
     # Transitions per side in one update (AMP Table 4: K = 256). The caller draws data and fresh policy
     # minibatches of this size; `update` takes whatever it is given.
@@ -81,6 +90,12 @@ class DiscriminatorConfig:
             raise ValueError("replay_capacity and batch_size must be at least 1")
         if self.w_gp < 0 or self.logit_reg < 0:
             raise ValueError("w_gp and logit_reg must be non-negative")
+        if self.gp_features not in GP_FEATURES:
+            raise ValueError(f"gp_features: unknown {self.gp_features!r}; expected one of {GP_FEATURES}")
+        if self.optimizer not in DISC_OPTIMIZERS:
+            raise ValueError(f"optimizer: unknown {self.optimizer!r}; expected one of {DISC_OPTIMIZERS}")
+        if not 0.0 <= self.momentum < 1.0 or self.lr <= 0:
+            raise ValueError("momentum must lie in [0, 1) and lr be positive")
 
 
 @dataclass
@@ -122,7 +137,7 @@ class TransitionReplay:
 
 
 class DiscriminatorLearner(Learner):
-    """Owns the discriminator, its Adam optimiser and the replay of past policy transitions.
+    """Owns the discriminator, its optimiser and the replay of past policy transitions.
 
     obs_dim: size of Φ(s) for one state (`workers.body.features.amp_dim`); inputs are [B, 2·obs_dim].
     seed:    seeds the network's initial weights and the replay sampler.
@@ -144,7 +159,12 @@ class DiscriminatorLearner(Learner):
             module = Discriminator(
                 obs_dim, config.hidden, config.activation, config.num_skills, config.skill_embed_dim
             ).to(self.device)
-        optimizer = torch.optim.Adam(module.parameters(), lr=config.lr, weight_decay=config.weight_decay)
+        if config.optimizer == "sgd":
+            optimizer = torch.optim.SGD(
+                module.parameters(), lr=config.lr, momentum=config.momentum, weight_decay=config.weight_decay
+            )
+        else:
+            optimizer = torch.optim.Adam(module.parameters(), lr=config.lr, weight_decay=config.weight_decay)
         super().__init__(module, optimizer, config.grad_clip)
         self.replay = TransitionReplay(config.replay_capacity, 2 * obs_dim, config.num_skills > 0)
         self.rng = np.random.default_rng(seed)
@@ -170,18 +190,17 @@ class DiscriminatorLearner(Learner):
         """
         cfg = self.config
         data_skill, policy_skill = self._skills(batch)
-        data_n = self.module.normalize(self._obs(batch.data_obs)).detach().requires_grad_(True)
-        policy_n = self.module.normalize(self._obs(batch.policy_obs)).detach()
         penalise_policy = cfg.gp_on == "data_and_policy"
-        policy_n.requires_grad_(penalise_policy)
+        data_in, data_n = self._penalised_input(batch.data_obs, True)
+        policy_in, policy_n = self._penalised_input(batch.policy_obs, penalise_policy)
         d_data = self.module.logits(data_n, data_skill)
         d_policy = self.module.logits(policy_n, policy_skill)
 
         total, terms = discriminator_loss(d_data, d_policy, cfg.loss)
-        gp, gp_terms = gradient_penalty(d_data, data_n, cfg.w_gp)
+        gp, gp_terms = gradient_penalty(d_data, data_in, cfg.w_gp)
         terms["gp_data"], terms["input_grad_norm_data"] = gp_terms["gp"], gp_terms["input_grad_norm"]
         if penalise_policy:
-            gp_policy, gp_terms = gradient_penalty(d_policy, policy_n, cfg.w_gp)
+            gp_policy, gp_terms = gradient_penalty(d_policy, policy_in, cfg.w_gp)
             terms["gp_policy"], terms["input_grad_norm_policy"] = gp_terms["gp"], gp_terms["input_grad_norm"]
             gp = gp + gp_policy
         terms["gp"] = gp
@@ -201,6 +220,16 @@ class DiscriminatorLearner(Learner):
             accuracy=0.5 * (acc_data + acc_policy),
         )
         return total, terms
+
+    def _penalised_input(self, obs: Any, penalised: bool) -> tuple[torch.Tensor, torch.Tensor]:
+        """(the input the penalty differentiates against, the normalised transitions D reads): with
+        gp_features raw the raw Φ, normalised through the graph; else the normalised ones themselves."""
+        raw = self._obs(obs)
+        if self.config.gp_features == "raw":
+            raw = raw.detach().requires_grad_(penalised)
+            return raw, self.module.normalize(raw)
+        normalised = self.module.normalize(raw).detach().requires_grad_(penalised)
+        return normalised, normalised
 
     def evaluate(self, batch: DiscriminatorBatch) -> dict[str, float]:
         """The loss terms on `batch` (no replay, no step, no side effect), e.g. on held-out transitions."""
