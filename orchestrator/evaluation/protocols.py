@@ -211,6 +211,7 @@ def evaluate_imitation(
                 job.log(logger, f"videos/{name}")
     metrics = {
         "eval/pose_error_dtw": pose["dtw"],
+        "eval/pose_error_eq10": pose["dtw_eq10"],
         "eval/pose_error_per_frame": pose["per_frame"],
         "eval/episode_seconds": pose["seconds"],
     }

@@ -18,6 +18,7 @@ def test_amp_smoke_run_leaves_a_complete_mlflow_run(smoke):
     cfg = smoke("algo=amp")
     summary = run(cfg)
     assert 0 < summary["eval/pose_error_dtw"] <= summary["eval/pose_error_per_frame"] + 1e-9
+    assert 0 < summary["eval/pose_error_eq10"]  # AMP's Eq. 10 as written, beside ours
     client = MlflowClient(f"sqlite:///{cfg.run_dir}/mlflow.db")
     run_id = json.loads((Path(cfg.run_dir) / "run.json").read_text())["run_id"]
     r = client.get_run(run_id)

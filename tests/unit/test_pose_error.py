@@ -7,7 +7,13 @@ import pytest
 
 from workers.body import rotations as rot
 from workers.body.features import heading_inverse
-from workers.evaluation.pose_error import dtw_pose_error, per_frame_pose_error, pose_error_matrix, relative_positions
+from workers.evaluation.pose_error import (
+    dtw_pose_error,
+    eq10_dtw_pose_error,
+    per_frame_pose_error,
+    pose_error_matrix,
+    relative_positions,
+)
 
 
 def clip_relative_positions(library, name: str) -> np.ndarray:
@@ -51,6 +57,20 @@ def test_heading_frame_makes_the_error_blind_to_yaw(walk_run, walk):
     assert per_frame_pose_error(turned, walk[:10]).max() < 1e-9
     # In world coordinates the same turn is an error of 0.118 m (measured).
     assert per_frame_pose_error(relative_positions(turned_xpos), relative_positions(s.xpos)).mean() > 0.05
+
+
+def test_eq10_as_written_uses_world_axes_and_every_joint():
+    """Three bodies, the root at the origin in both: one body 0.3 m off. Eq. 10 divides by N_joint = 3 (the
+    root's zero term counted): 0.1 m; ours divides by the two non-root bodies: 0.15 m. A yaw turn of the
+    whole body costs Eq. 10 (world axes) and not ours (heading frame)."""
+    ref = np.array([[[0.0, 0.0, 1.0], [1.0, 0.0, 1.0], [0.0, 1.0, 1.0]]] * 2)  # [T=2, B=3, 3]
+    moved = ref.copy()
+    moved[:, 1, 0] += 0.3
+    assert eq10_dtw_pose_error(moved, ref) == pytest.approx(0.1)
+    assert dtw_pose_error(relative_positions(moved), relative_positions(ref))["error"] == pytest.approx(0.15)
+    turned = ref @ rot.yaw_matrix(np.full(2, np.pi / 2)).transpose(0, 2, 1)  # +x to +y, +y to -x
+    # Offsets (1, 0, 0) -> (0, 1, 0) and (0, 1, 0) -> (-1, 0, 0): sqrt(2) each, over 3 joints.
+    assert eq10_dtw_pose_error(turned, ref) == pytest.approx(2 * np.sqrt(2) / 3)
 
 
 # pose_error_matrix, per_frame_pose_error, dtw_pose_error on a hand-worked example ---

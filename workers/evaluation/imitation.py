@@ -10,8 +10,11 @@ the cost (`workers.evaluation.pose_error`): positions of every body relative to 
 in each frame's heading frame (so a character that walks the clip's gait but
 drifts in heading is judged by its pose), mean over bodies, metres.
 
-The plain per-frame error (no warping) is reported beside it: a policy that
-imitates the gait at a slightly different pace has a small DTW error and a
+That heading frame and the mean over the B − 1 non-root bodies are ours. Eq. 10 as AMP
+writes it takes the offsets from the root on the world axes and divides by N_joint, every
+joint of the body, the root's own zero term included; it is reported beside ours as
+"dtw_eq10" (DTW under its own cost). The plain per-frame error (no warping) is reported too:
+a policy that imitates the gait at a slightly different pace has a small DTW error and a
 growing per-frame error.
 """
 
@@ -23,7 +26,7 @@ import numpy as np
 
 from workers.body.character import Character
 from workers.body.features import heading_inverse
-from workers.evaluation.pose_error import dtw_pose_error, per_frame_pose_error, relative_positions
+from workers.evaluation.pose_error import dtw_pose_error, eq10_dtw_pose_error, per_frame_pose_error, relative_positions
 from workers.motion.library import MotionLibrary
 from workers.sim.env import BatchedSim, SimConfig, without_tracking_termination
 from workers.types import KinState
@@ -48,9 +51,9 @@ def pose_error_episodes(
 ) -> dict:
     """Per-episode DTW pose error, per-frame error and length; their means; the error over time.
 
-    Returns {"dtw": mean over episodes (m), "per_frame": mean (m), "seconds": mean episode length (s),
-    "episodes": [{"dtw", "per_frame", "seconds"}...], "curve_t": [K] seconds, "curve": [K] mean DTW
-    cost at that time over the episodes still running}.
+    Returns {"dtw": mean over episodes (m), "dtw_eq10": the same by Eq. 10 as written (m), "per_frame":
+    mean (m), "seconds": mean episode length (s), "episodes": [{"dtw", "dtw_eq10", "per_frame", "seconds"}...],
+    "curve_t": [K] seconds, "curve": [K] mean DTW cost at that time over the episodes still running}.
     """
     from workers.models import body_state
 
@@ -59,12 +62,14 @@ def pose_error_episodes(
     steps = max(1, int(round(max_seconds * config.control_hz)))
     start_clip, start_frame = sim.clip_id.copy(), sim.start_frame.copy()
     sim_pos = np.zeros((steps, num_episodes, character.num_bodies - 1, 3))
+    sim_xpos = np.zeros((steps, num_episodes, character.num_bodies, 3))  # for Eq. 10 as written
     alive = np.ones(num_episodes, bool)
     length = np.zeros(num_episodes, int)
     bs = body_state.pack(sim.kin_state())
     for t in range(steps):
         result = sim.step(act(sim, bs))
         sim_pos[t] = _relative(result.kin)
+        sim_xpos[t] = result.kin.xpos
         length[alive] += 1
         alive &= ~(result.fell | result.clip_ended)
         if not alive.any():
@@ -74,11 +79,14 @@ def pose_error_episodes(
     for e in range(num_episodes):
         n = int(length[e])
         frames = start_frame[e] + 1 + np.arange(n)
-        ref = _relative(library.state(np.full(n, start_clip[e]), frames))
+        ref_kin = library.state(np.full(n, start_clip[e]), frames)
+        ref = _relative(ref_kin)
         warped = dtw_pose_error(sim_pos[:n, e], ref)
+        eq10 = eq10_dtw_pose_error(sim_xpos[:n, e], ref_kin.xpos)
         episodes.append(
             {
                 "dtw": float(warped["error"]),
+                "dtw_eq10": float(eq10),
                 "per_frame": float(per_frame_pose_error(sim_pos[:n, e], ref).mean()),
                 "seconds": n / config.control_hz,
                 "clip": library.names[start_clip[e]],
@@ -96,6 +104,7 @@ def pose_error_episodes(
         count[: len(c)] += 1
     return {
         "dtw": float(np.mean([e["dtw"] for e in episodes])),
+        "dtw_eq10": float(np.mean([e["dtw_eq10"] for e in episodes])),
         "per_frame": float(np.mean([e["per_frame"] for e in episodes])),
         "seconds": float(np.mean([e["seconds"] for e in episodes])),
         "episodes": episodes,

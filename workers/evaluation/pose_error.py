@@ -94,3 +94,15 @@ def dtw_pose_error(a: np.ndarray, b: np.ndarray, step_pattern: str = "symmetric2
     index_a, index_b = np.asarray(alignment.index1), np.asarray(alignment.index2)
     per_step = cost[index_a, index_b]
     return {"error": float(per_step.mean()), "per_step": per_step, "index_a": index_a, "index_b": index_b}
+
+
+def eq10_dtw_pose_error(a_xpos: np.ndarray, b_xpos: np.ndarray, root: int = 0) -> float:
+    """AMP's Eq. 10 as written, after DTW under its own cost: offsets from the root on the world axes
+    (no heading frame) and 1/N_joint over all B joints of the body, the root's zero term counted.
+
+    a_xpos: [N, B, 3], b_xpos: [M, B, 3] body positions. The per-pair cost is (B − 1)/B of the
+    mean over the non-root bodies, a constant factor, so the alignment is the same.
+    """
+    bodies = np.asarray(a_xpos).shape[1]
+    warped = dtw_pose_error(relative_positions(a_xpos, root), relative_positions(b_xpos, root))
+    return warped["error"] * (bodies - 1) / bodies
