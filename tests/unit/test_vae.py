@@ -156,6 +156,31 @@ def test_the_physicsvae_learner_uses_the_configured_reduction(walk_run):
         VAEConfig(objective="physicsvae", prior="standard_normal", physicsvae_reduction="max")
 
 
+def test_the_plain_network_is_physicsvaes_table_2():
+    """network=plain: ReLU MLPs taking their inputs once (encoder 2D -> 256 -> 128, decoder D + Z -> 512 x 3),
+    no layer norm; concat (ours) re-concatenates the conditioning at every layer."""
+    from workers.learners.vae import build_controller
+
+    d, z = 15 * 16 + 3, 32
+    cfg = VAEConfig(objective="physicsvae", prior="standard_normal", latent_dim=z, encoder_hidden=(256, 128),
+                    policy="mlp", policy_hidden=(512, 512, 512), activation="relu", network="plain")  # fmt: skip
+    vae = build_controller(15, 28, cfg)
+    linears = [m for m in vae.posterior.modules() if isinstance(m, torch.nn.Linear)]
+    assert [(m.in_features, m.out_features) for m in linears] == [(2 * d, 256), (256, 128), (128, 2 * z)]
+    linears = [m for m in vae.policy.modules() if isinstance(m, torch.nn.Linear)]
+    assert [m.in_features for m in linears] == [d + z, 512, 512, 512] and linears[-1].out_features == 28
+    assert not any(isinstance(m, (torch.nn.LayerNorm, torch.nn.ELU)) for m in vae.modules())
+    assert any(isinstance(m, torch.nn.ReLU) for m in vae.modules())
+    ours = build_controller(15, 28, VAEConfig(objective="physicsvae", prior="standard_normal", latent_dim=z,
+                                              policy="mlp", policy_hidden=(512,)))  # fmt: skip
+    assert any(isinstance(m, torch.nn.LayerNorm) for m in ours.policy.modules())
+    s = torch.randn(4, d)
+    q, p = vae.encode(s, s + 0.1)
+    assert q.mean.shape == (4, z) and vae.act(s, q.mean).shape == (4, 28)
+    with pytest.raises(ValueError, match="vae.network"):
+        VAEConfig(network="resnet")
+
+
 def test_pulse_regularises_consecutive_latents():
     means = torch.tensor([[[0.0, 0.0], [1.0, 0.0], [1.0, 2.0]]])  # steps of squared length 1 and 4: mean 2.5
     zero = torch.zeros(1, 3, 4)
@@ -208,6 +233,15 @@ def test_every_objective_and_prior_updates(walk_run, objective, prior):
     after = learner.get_weights()
     assert after.version == 1
     assert any(not torch.equal(before[k], v) for k, v in after.state.items())
+
+
+@pytest.mark.parametrize(("objective", "prior"), [("physicsvae", "standard_normal"), ("pulse", "learned")])
+def test_plain_networks_update(walk_run, objective, prior):
+    torch.manual_seed(0)
+    learner = small_learner(objective, prior, network="plain", activation="relu")  # the moe policy stays moe
+    before = {k: v.clone() for k, v in learner.get_weights().state.items()}
+    m = learner.update(random_batch(walk_run))
+    assert math.isfinite(m["loss"]) and any(not torch.equal(before[k], v) for k, v in learner.get_weights().state.items())
 
 
 def test_non_finite_batch_is_skipped(walk_run):

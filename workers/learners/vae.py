@@ -46,6 +46,10 @@ class VAEConfig:
     num_experts: int = 6
     gate_hidden: tuple[int, ...] = (64, 64)
     activation: str = "elu"
+    # How the inputs meet the layers: concat (ControlVAE's: the conditioning re-concatenated at every layer
+    # of prior, posterior and MLP policy, layer norm in the policy) | plain (PhysicsVAE's Table 2 and the
+    # authors' code: the inputs concatenated once, plain MLPs). The moe policy is ControlVAE's either way.
+    network: str = "concat"
     # σ_p, the fixed standard deviation of the conditional prior and its posterior (ControlVAE 0.3).
     sigma_p: float = 0.3
     # A fixed posterior standard deviation for the other priors; None learns it, except under the controlvae
@@ -87,6 +91,8 @@ class VAEConfig:
             raise ValueError(f"vae.objective: unknown objective {self.objective!r}; expected one of {OBJECTIVES}")
         if self.prior not in PRIOR_TYPES:
             raise ValueError(f"vae.prior: unknown prior type {self.prior!r}; expected one of {PRIOR_TYPES}")
+        if self.network not in ("concat", "plain"):
+            raise ValueError(f"vae.network: unknown network {self.network!r}; expected 'concat' or 'plain'")
         if self.physicsvae_reduction not in PHYSICSVAE_REDUCTIONS:
             raise ValueError(
                 f"vae.physicsvae_reduction: unknown reduction {self.physicsvae_reduction!r}; "
@@ -148,6 +154,7 @@ def build_controller(num_bodies: int, action_dim: int, config: VAEConfig) -> VAE
         sigma_p=c.sigma_p,
         posterior_std=c.posterior_std,
         log_std_range=(c.log_std_min, c.log_std_max),
+        plain=c.network == "plain",
     )
 
 

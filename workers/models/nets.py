@@ -77,6 +77,21 @@ class ConcatMLP(nn.Module):
         return self.out(torch.cat((x, cond), dim=-1))
 
 
+class PlainMLP(nn.Module):
+    """An MLP on the concatenation (x, cond), taken once at its input: `ConcatMLP`'s call, `mlp`'s network
+    (PhysicsVAE's encoder and motor decoder, Table 2 and the authors' code)."""
+
+    def __init__(
+        self, in_dim: int, cond_dim: int, hidden: Sequence[int], out_dim: int, act: str = "elu",
+        out_scale: float | None = None,
+    ):  # fmt: skip
+        super().__init__()
+        self.net = mlp(in_dim + cond_dim, hidden, out_dim, act, out_scale)
+
+    def forward(self, x: torch.Tensor, cond: torch.Tensor) -> torch.Tensor:
+        return self.net(torch.cat((x, cond), dim=-1))
+
+
 class Normalizer(nn.Module):
     """Running mean and standard deviation of an input, applied as (x - mean) / std.
 

@@ -23,7 +23,7 @@ from collections.abc import Sequence
 import torch
 from torch import nn
 
-from workers.models.nets import ConcatMLP, Normalizer, activation, mlp
+from workers.models.nets import ConcatMLP, Normalizer, PlainMLP, activation, mlp
 
 PRIOR_TYPES = ("standard_normal", "conditional", "learned")
 
@@ -50,6 +50,7 @@ class Prior(nn.Module):
         act: str = "elu",
         sigma_p: float = 0.3,
         log_std_range: tuple[float, float] = (-5.0, 0.5),
+        plain: bool = False,
     ):
         super().__init__()
         if kind not in PRIOR_TYPES:
@@ -59,14 +60,20 @@ class Prior(nn.Module):
         self.log_sigma_p = math.log(sigma_p)
         self.log_std_range = log_std_range
         out = 2 * latent_dim if kind == "learned" else latent_dim
-        self.net = None if kind == "standard_normal" else ConcatMLP(state_dim, state_dim, hidden, out, act)
+        if kind == "standard_normal":
+            self.net = None
+        elif plain:
+            self.net = PlainMLP(state_dim, 0, hidden, out, act)
+        else:
+            self.net = ConcatMLP(state_dim, state_dim, hidden, out, act)
+        self.plain = plain
 
     def forward(self, s: torch.Tensor) -> Gaussian:
         """p(z | s) for normalised features s [..., D]."""
         if self.net is None:
             zero = s.new_zeros(s.shape[:-1] + (self.latent_dim,))
             return Gaussian(zero, zero)
-        out = self.net(s, s)
+        out = self.net(s, s[..., :0]) if self.plain else self.net(s, s)
         if self.kind == "conditional":
             return Gaussian(out, out.new_full((), self.log_sigma_p))
         mean, log_std = out.chunk(2, dim=-1)
@@ -84,9 +91,11 @@ class Posterior(nn.Module):
         sigma_p: float = 0.3,
         posterior_std: float | None = None,
         log_std_range: tuple[float, float] = (-5.0, 0.5),
+        plain: bool = False,
     ):
         super().__init__()
         self.kind = kind
+        self.plain = plain
         self.latent_dim = latent_dim
         self.log_std_range = log_std_range
         if kind == "conditional":
@@ -94,11 +103,14 @@ class Posterior(nn.Module):
         else:
             self.fixed_log_std = None if posterior_std is None else math.log(posterior_std)
         out = latent_dim if self.fixed_log_std is not None else 2 * latent_dim
-        self.net = ConcatMLP(2 * state_dim, state_dim, hidden, out, act)
+        if plain:
+            self.net = PlainMLP(state_dim, state_dim, hidden, out, act)
+        else:
+            self.net = ConcatMLP(2 * state_dim, state_dim, hidden, out, act)
 
     def forward(self, s: torch.Tensor, s_next: torch.Tensor, prior: Gaussian) -> Gaussian:
         """q(z | s, s') for normalised features [..., D]; a residual on the prior mean."""
-        out = self.net(torch.cat((s, s_next), dim=-1), s_next)
+        out = self.net(s, s_next) if self.plain else self.net(torch.cat((s, s_next), dim=-1), s_next)
         if self.fixed_log_std is not None:
             mean, log_std = out, out.new_full((), self.fixed_log_std)
         else:
@@ -156,9 +168,18 @@ class MixtureOfExperts(nn.Module):
 
 
 class MLPPolicy(nn.Module):
-    def __init__(self, state_dim: int, latent_dim: int, action_dim: int, hidden: Sequence[int], act: str = "elu"):
+    """μ_π(s, z): z re-concatenated at every layer with layer norm (ours), or with `plain` (s, z) once at the
+    input of a plain MLP (PhysicsVAE's motor decoder)."""
+
+    def __init__(
+        self, state_dim: int, latent_dim: int, action_dim: int, hidden: Sequence[int], act: str = "elu",
+        plain: bool = False,
+    ):  # fmt: skip
         super().__init__()
-        self.net = ConcatMLP(state_dim, latent_dim, hidden, action_dim, act, layer_norm=True, out_scale=0.01)
+        if plain:
+            self.net = PlainMLP(state_dim, latent_dim, hidden, action_dim, act, out_scale=0.01)
+        else:
+            self.net = ConcatMLP(state_dim, latent_dim, hidden, action_dim, act, layer_norm=True, out_scale=0.01)
 
     def forward(self, s: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
         return self.net(s, z)
@@ -185,20 +206,21 @@ class VAEController(nn.Module):
         sigma_p: float = 0.3,
         posterior_std: float | None = None,
         log_std_range: tuple[float, float] = (-5.0, 0.5),
+        plain: bool = False,
     ):
         super().__init__()
         self.latent_dim = latent_dim
         self.state_norm = Normalizer(state_dim)
-        self.prior = Prior(prior, state_dim, latent_dim, encoder_hidden, act, sigma_p, log_std_range)
+        self.prior = Prior(prior, state_dim, latent_dim, encoder_hidden, act, sigma_p, log_std_range, plain)
         self.posterior = Posterior(
-            prior, state_dim, latent_dim, encoder_hidden, act, sigma_p, posterior_std, log_std_range
+            prior, state_dim, latent_dim, encoder_hidden, act, sigma_p, posterior_std, log_std_range, plain
         )
         if policy == "moe":
             self.policy = MixtureOfExperts(
                 state_dim, latent_dim, action_dim, num_experts, policy_hidden, gate_hidden, act
             )
         elif policy == "mlp":
-            self.policy = MLPPolicy(state_dim, latent_dim, action_dim, policy_hidden, act)
+            self.policy = MLPPolicy(state_dim, latent_dim, action_dim, policy_hidden, act, plain)
         else:
             raise ValueError(f"unknown policy type {policy!r}; expected 'mlp' or 'moe'")
 
