@@ -10,10 +10,10 @@ new weights are published for the next collection.
 Table 3's rows are configurations: the learned prior (`algo.vae.prior=learned`, off:
 `standard_normal`, N(0, I)), L_regu (`algo.vae.lambda_regu`, 0 turns it off) and the
 prior-residual action of the downstream task (`algo.pulse.prior_action`, Eq. 4, read by a task
-stage on this decoder). Evaluation: PULSE's success rate (the error averaged over the joints within
-0.5 m of the reference at all times; the stricter every-joint rate beside it) and MPJPE tracking every clip with the encoder's mean, the action
-error against the teacher on the student's own states, and random sampling from the prior
-(time until fall).
+stage on this decoder). Evaluation: PULSE's success rate (the error averaged over the joints
+within 0.5 m of the reference at all times; the stricter every-joint rate beside it) and MPJPE
+tracking every clip with the encoder's mean, the action error against the teacher on the
+student's own states, and random sampling from the prior (time until fall).
 """
 
 from __future__ import annotations

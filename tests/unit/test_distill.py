@@ -122,3 +122,31 @@ def test_every_joint_rule_is_stricter_than_the_mean_joint_rule(character, walk_r
     assert not walk["success_every_joint"] and walk["success_pulse"]
     default = tracking_success(reference_actor(walk_run), character, walk_run, seconds=0.2)
     assert default["per_clip"]["humanoid3d_walk"]["success_every_joint"]  # 0.144 m <= 0.5 m
+
+
+def test_the_pulse_learner_labels_each_window_state_at_its_own_frame(character, walk_run):
+    """PulseActor.batch: window state t, stored at reference frame `frame + t` (as the rollout records it,
+    sim.start_frame + sim.steps before the step), is labelled with the teacher's action there, the
+    action GaussianPolicy.mean_action gave in the simulator; a label one frame off fails."""
+    from orchestrator.components.pulse import PulseActor
+    from workers.types import WindowBatch
+
+    torch.manual_seed(0)
+    sim = BatchedSim(character, walk_run, 3, seed=2)
+    module = build_actor_critic(observation_dim("imitation", sim.state_dim), sim.action_dim, SMALL)
+    policy = GaussianPolicy(module, "imitation", residual=True)
+    first_clip, first_frame = sim.clip_id.copy(), sim.start_frame + sim.steps
+    states, want = [body_state.pack(sim.kin_state())], []
+    for _ in range(6):
+        want.append(policy.mean_action(sim, states[-1]))
+        states.append(body_state.pack(sim.step(want[-1]).kin))
+    assert (sim.steps == 6).all()  # no episode restarted inside the window
+    actor = PulseActor.__new__(PulseActor)
+    actor.character, actor.library, actor.teacher, actor.residual = character, walk_run, module, True
+    window = WindowBatch(np.stack(states, 1), np.stack(want, 1), first_clip, first_frame, np.zeros(3, int))
+    batch = actor.batch(window)
+    np.testing.assert_allclose(batch.actions, np.stack(want, 1), atol=1e-5)
+    want_ref = walk_run.state(np.repeat(first_clip, 7), (first_frame[:, None] + np.arange(7)).ravel())
+    np.testing.assert_allclose(batch.reference, body_state.pack(want_ref).reshape(3, 7, 15, 13), atol=1e-5)
+    shifted = WindowBatch(window.states, window.actions, first_clip, first_frame + 1, window.version)
+    assert np.abs(actor.batch(shifted).actions - np.stack(want, 1)).max() > 1e-2

@@ -84,6 +84,38 @@ def test_time_until_fall_has_one_start_and_samples_z_per_rollout(character, walk
         fall_start(walk_run, ("humanoid3d_walk", 1000))
 
 
+def test_time_until_fall_draws_a_fresh_standard_normal_z_every_control_step(character, walk_run):
+    """PhysicsVAE's protocol: z ~ N(0, I) at every control step of every rollout. The latents the policy
+    is given (recorded) must pass a Kolmogorov-Smirnov test against N(0, 1) in every dimension, have an
+    identity covariance and no correlation between consecutive steps: a z drawn once per rollout (lag-1
+    correlation 1), a prior's mean (variance 0) or a wrong scale fails."""
+    from scipy import stats
+
+    c = build_controller(
+        character.num_bodies,
+        character.num_actions,
+        dataclasses.replace(SMALL, prior="standard_normal", objective="physicsvae"),
+    )
+    seen = []
+    act = c.act
+
+    def recording(s, z):
+        seen.append(z.detach().clone())
+        return act(s, z)
+
+    c.act = recording
+    time_until_fall(c, character, walk_run, num_rollouts=16, max_seconds=2.0)
+    z = torch.stack(seen).numpy()  # [steps, rollouts, 8]
+    assert z.shape[1:] == (16, 8) and z.shape[0] >= 10
+    flat = z.reshape(-1, 8)
+    for d in range(8):
+        assert stats.kstest(flat[:, d], "norm").pvalue > 1e-3, d
+    cov = np.cov(flat, rowvar=False)
+    assert np.abs(cov - np.eye(8)).max() < 0.25
+    lag1 = np.mean([np.corrcoef(z[:-1, r, d], z[1:, r, d])[0, 1] for r in range(16) for d in range(8)])
+    assert abs(lag1) < 0.1
+
+
 def test_tracking_error_of_the_reference_is_small_and_of_an_untrained_controller_large(character, walk_run):
     pd = reference_targets(walk_run)
 

@@ -53,7 +53,9 @@ def test_alpha_claims_and_the_spread_figure_from_known_rows(tmp_path):
     table = alpha_claims(rows, "a", key="m")
     # d = 2.00 s; variances 0.02 a side, SE 0.1414, Welch df 2, three statements: t(1 - 0.05/6, 2) = 7.649,
     # so 2.00 ± 1.08 s: reproduced.
-    assert "α = 0.001: 3.00 s (2) vs α = 0: 1.00 s (2) | d = +2.00 s, 98.3% CI [+0.92, +3.08] s: **reproduced**" in table
+    assert (
+        "α = 0.001: 3.00 s (2) vs α = 0: 1.00 s (2) | d = +2.00 s, 98.3% CI [+0.92, +3.08] s: **reproduced**" in table
+    )
     # The best range has only α = 1e-3 here; α = 1e-2 is the only other α > 0: d = +1.00 ± 1.08: not resolved.
     assert "α in {3e-4, 1e-3, 3e-3}: 3.00 s (2) vs the other α > 0: 2.00 s (2) | d = +1.00 s" in table
     assert "too large an α degrades | α = 0.01: 2.00 s (2) vs α = 0.001: 3.00 s (2) | d = -1.00 s" in table

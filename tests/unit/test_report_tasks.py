@@ -177,7 +177,9 @@ def test_sigma_claims_per_terrain_from_known_rows():
 def test_sigma_claims_verdicts_flip_with_the_spread_and_the_seeds():
     rows = sigma_rows()
     for r in [r for r in rows if r["seed"] == "0"]:  # a third seed on every point, 0.01 above the first
-        rows.append({**r, "seed": "2", "run_id": r["run_id"][:-1] + "2", "eval/task_success": r["eval/task_success"] + 0.01})
+        rows.append(
+            {**r, "seed": "2", "run_id": r["run_id"][:-1] + "2", "eval/task_success": r["eval/task_success"] + 0.01}
+        )
     # Flat σ = 1.0 far above σ = 0.1 with tight seeds: σ = 0.1 no longer suffices.
     for r in rows:
         if r[TERRAIN] == "flat" and r[SIGMA] == "1.0":

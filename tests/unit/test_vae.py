@@ -241,7 +241,42 @@ def test_plain_networks_update(walk_run, objective, prior):
     learner = small_learner(objective, prior, network="plain", activation="relu")  # the moe policy stays moe
     before = {k: v.clone() for k, v in learner.get_weights().state.items()}
     m = learner.update(random_batch(walk_run))
-    assert math.isfinite(m["loss"]) and any(not torch.equal(before[k], v) for k, v in learner.get_weights().state.items())
+    assert math.isfinite(m["loss"]) and any(
+        not torch.equal(before[k], v) for k, v in learner.get_weights().state.items()
+    )
+
+
+def test_the_learners_kl_is_the_posterior_to_the_prior_by_hand(walk_run):
+    """The KL term the learner optimises, worked from the encoder's own q and p: PhysicsVAE's to N(0, I),
+    ½ Σ (μ² + σ² − 1 − 2 log σ), and PULSE's KL(q ‖ p) to its learned prior, which is not KL(p ‖ q). A
+    learner with the KL reversed, averaged instead of summed over the latent, or taken to the wrong
+    distribution fails this."""
+    from workers.models import body_state
+
+    batch = random_batch(walk_run)
+    torch.manual_seed(0)
+    learner = small_learner("physicsvae", "standard_normal", alpha=0.0)
+    learner.before_update(batch)
+    with torch.no_grad():
+        _, terms = learner.loss(batch)
+        s = body_state.features(torch.as_tensor(batch.states))
+        q, _ = learner.vae.encode(s[:, :-1], s[:, 1:])
+        by_hand = 0.5 * (q.mean**2 + torch.exp(2 * q.log_std) - 1 - 2 * q.log_std).sum(-1).mean()
+    torch.testing.assert_close(terms["kl"], by_hand)
+    assert float(by_hand) > 0
+
+    torch.manual_seed(1)
+    pulse = small_learner("pulse", "learned")
+    pulse.before_update(batch)
+    with torch.no_grad():
+        _, terms = pulse.loss(batch)
+        s = body_state.features(torch.as_tensor(batch.states[:, :-1]))
+        goal = body_state.features(torch.as_tensor(batch.reference[:, 1:]))
+        q, p = pulse.vae.encode(s, goal)
+        forward = kl_divergence(Normal(q.mean, q.log_std.exp()), Normal(p.mean, p.log_std.exp())).sum(-1).mean()
+        backward = kl_divergence(Normal(p.mean, p.log_std.exp()), Normal(q.mean, q.log_std.exp())).sum(-1).mean()
+    torch.testing.assert_close(terms["kl"], forward)
+    assert abs(float(forward - backward)) > 1e-3 * float(forward)
 
 
 def test_non_finite_batch_is_skipped(walk_run):

@@ -101,5 +101,7 @@ def test_a_real_effect_is_reproduced_and_the_kl_level_is_judged():
     assert "α = 0.001: 3.00 s (3) vs α = 0: 1.00 s (3)" in lines[2] and lines[2].endswith("**reproduced** |")
     assert "α in {3e-4, 1e-3, 3e-3}: 3.00 s (9) vs the other α > 0: 1.75 s (6)" in lines[3]
     assert lines[4].startswith("| too large an α degrades") and lines[4].endswith("**reproduced** |")
-    kl = kl_claims([{"b": b, "seed": s, "m": t + 0.1 * s} for b, t in ((0.0, 0.4), (2.0, 9.0)) for s in range(3)], "b", "m")
+    kl = kl_claims(
+        [{"b": b, "seed": s, "m": t + 0.1 * s} for b, t in ((0.0, 0.4), (2.0, 9.0)) for s in range(3)], "b", "m"
+    )
     assert "β = 0) the character falls within 1 s | 0.50 s (3) | mean = +0.50 s" in kl and "**reproduced**" in kl

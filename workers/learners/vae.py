@@ -244,7 +244,9 @@ class VAELearner(Learner):
             predicted_next = s[:, 1:]
         kl = gaussian_kl(q.mean, q.log_std, p.mean, p.log_std)
         c = self.config
-        return physicsvae_loss(a, expert_actions, predicted_next, s[:, 1:], kl, c.alpha, self.beta, c.physicsvae_reduction)
+        return physicsvae_loss(
+            a, expert_actions, predicted_next, s[:, 1:], kl, c.alpha, self.beta, c.physicsvae_reduction
+        )
 
     def _pulse(self, states: torch.Tensor, reference: torch.Tensor, teacher_actions: torch.Tensor):
         s = body_state.features(states[:, :-1])

@@ -1,0 +1,60 @@
+"""PhysicsVAE's offline learning-rate schedule as the stage runs it: ×0.7 every 50 epochs (Table 2), epoch by
+epoch through the actor's own `train_epoch`, for the simulation layer and the VAE alike."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+
+from orchestrator.components.physicsvae import PhysicsVAEActor, SimulationLayerActor
+from orchestrator.compose import compose, validate
+from workers.demos import DemoSet
+from workers.learners.world_model import build_world_model
+from workers.models.body_state import pack
+
+
+def walk_demos(walk_run, episodes: int = 4, length: int = 12) -> DemoSet:
+    """Reference states of the walk as expert episodes, with zero actions (the schedule needs no expert)."""
+    out = []
+    for e in range(episodes):
+        frames = e + np.arange(length + 1)
+        states = pack(walk_run.state(np.zeros(length + 1, int), frames)).astype(np.float32)
+        out.append({"states": states, "actions": np.zeros((length, 28), np.float32), "clip": 0, "rollout": e,
+                    "fell": False, "tracking_error": 0.0})  # fmt: skip
+    return DemoSet.from_episodes(out)
+
+
+def small(algo: str, tmp_path, **section):
+    cfg = validate(compose([f"run_dir={tmp_path}", f"algo={algo}", "scale=paper"]))
+    assert (cfg.algo.offline.lr_decay, cfg.algo.offline.decay_every) == (0.7, 50)  # Table 2 at scale=paper
+    offline = dataclasses.replace(cfg.algo.offline, holdout_rollouts=1)
+    parts = {k: dataclasses.replace(getattr(cfg.algo, k), **v) for k, v in section.items()}
+    return dataclasses.replace(cfg, algo=dataclasses.replace(cfg.algo, offline=offline, **parts))
+
+
+@pytest.mark.parametrize("algo", ["world_model", "physicsvae"])
+def test_the_learning_rate_falls_by_0_7_every_50_epochs(walk_run, tmp_path, algo):
+    demos = walk_demos(walk_run)
+    if algo == "world_model":
+        cfg = small(algo, tmp_path, world_model={"hidden": (8,), "batch_size": 64})
+        actor = SimulationLayerActor(cfg, demos, 15, 28)
+        base = cfg.algo.world_model.lr
+    else:
+        cfg = small(algo, tmp_path, vae={"encoder_hidden": (8,), "policy_hidden": (8,), "batch_size": 64, "alpha": 0.0})
+        wm = small("world_model", tmp_path, world_model={"hidden": (8,)}).algo.world_model
+        layer = build_world_model(15, 28, wm, 1 / 30).state_dict()
+        actor = PhysicsVAEActor(cfg, demos, 15, 28, (wm, layer))
+        base = cfg.algo.vae.lr
+    seen = []
+    torch.manual_seed(0)
+    for _ in range(151):
+        actor.train_epoch()
+        seen.append(actor.learner.optimizer.param_groups[0]["lr"])
+    # Epochs 0-49 at the base rate, 50-99 at 0.7 of it, 100-149 at 0.49, epoch 150 at 0.343.
+    assert seen[0] == seen[49] == pytest.approx(base)
+    assert seen[50] == seen[99] == pytest.approx(0.7 * base)
+    assert seen[100] == pytest.approx(0.49 * base) and seen[150] == pytest.approx(0.343 * base)
+    assert actor.epoch == 151
