@@ -55,5 +55,8 @@ def test_default_loop_improves_tracking_in_the_simulator(tmp_path):
         f"world_model/loss {wm[0]:.3f} -> {wm[-1]:.3f}"
     )
     assert np.isfinite(after)
-    assert after < 0.75 * before
+    # The loop is deterministic on one machine, but its trajectory is not the same on another (a different
+    # CPU's floating point): after / before measured 0.67, 0.70, 0.82 for seeds 0, 1, 2 on one machine and
+    # 0.87 for seed 0 on another. An untrained or broken loop stays at 1 or above; 0.9 asks for a clear gain.
+    assert after < 0.9 * before
     assert np.mean(rec[-5:]) < 0.85 * np.mean(rec[:5])
