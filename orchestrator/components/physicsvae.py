@@ -25,6 +25,7 @@ from workers.demos import DemoSet
 from workers.learners.vae import VAEBatch, VAELearner
 from workers.learners.world_model import WorldModelBatch, WorldModelConfig, WorldModelLearner, build_world_model
 from workers.models import body_state
+from workers.models.world_model import WorldModel
 
 
 class OfflineActor(LearnerActor):
@@ -104,6 +105,11 @@ class SimulationLayerActor(OfflineActor):
         """Open-loop error on held-out windows: body positions (m, relative to nothing: world frame) and
         the loss terms, after one step and after T_w steps."""
         states, actions = self.demos.windows(self.heldout(), self.window)
+        if self.cfg.algo.world_model.kind == "regress":  # features only: no body positions to compare
+            model = self.learner.model.eval()
+            s, a = torch.from_numpy(states), torch.from_numpy(actions)
+            mse = ((model.next_features(s[:, :-1], a) - body_state.features(s[:, 1:])) ** 2).mean()
+            return {"heldout_feature_mse_1": float(mse)}
         predicted = self.learner.predict(torch.from_numpy(states[:, 0]), torch.from_numpy(actions))
         err = (predicted[..., :3] - torch.from_numpy(states[:, 1:, :, :3])).norm(dim=-1).mean(-1)  # [N, T]
         return {"heldout_pos_error_1": float(err[:, 0].mean()), "heldout_pos_error_T": float(err[:, -1].mean())}
@@ -150,13 +156,16 @@ class PhysicsVAEActor(OfflineActor):
         s = body_state.features(torch.from_numpy(states))
         q, _ = vae.encode(s[:, 0], s[:, 1])
         a = vae.act(s[:, 0], q.mean)
-        nxt = self.world_model(torch.from_numpy(states[:, 0]), a)
-        pos = (nxt[..., :3] - torch.from_numpy(states[:, 1, :, :3])).norm(dim=-1).mean(-1)
-        return {
+        start = torch.from_numpy(states[:, 0])
+        out = {
             "heldout_action_error": float(((a - torch.from_numpy(actions[:, 0])) ** 2).sum(-1).mean()),
-            "heldout_sim_error": float(((body_state.features(nxt) - s[:, 1]) ** 2).sum(-1).mean()),
-            "heldout_next_pos_error": float(pos.mean()),
+            "heldout_sim_error": float(((self.world_model.next_features(start, a) - s[:, 1]) ** 2).sum(-1).mean()),
         }
+        if isinstance(self.world_model, WorldModel):  # a regress layer predicts features, not body positions
+            nxt = self.world_model(start, a)
+            pos = (nxt[..., :3] - torch.from_numpy(states[:, 1, :, :3])).norm(dim=-1).mean(-1)
+            out["heldout_next_pos_error"] = float(pos.mean())
+        return out
 
     def get_weights(self):
         return self.learner.get_weights()

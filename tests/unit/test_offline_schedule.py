@@ -58,3 +58,29 @@ def test_the_learning_rate_falls_by_0_7_every_50_epochs(walk_run, tmp_path, algo
     assert seen[50] == seen[99] == pytest.approx(0.7 * base)
     assert seen[100] == pytest.approx(0.49 * base) and seen[150] == pytest.approx(0.343 * base)
     assert actor.epoch == 151
+
+
+def test_a_regress_layer_trains_and_physicsvae_learns_through_it(walk_run, tmp_path):
+    """world_model.kind=regress (Table 2's layer): the stage's actor trains it on the demos and reports its
+    held-out feature error; a PhysicsVAE with α > 0 takes its α term through the layer's s′ and reports
+    heldout_sim_error without body positions (a regressor has none); ControlVAE cannot roll it out."""
+    from workers.learners.vae import VAEConfig, VAELearner
+
+    demos = walk_demos(walk_run, episodes=6)
+    regress = {"kind": "regress", "hidden": (32,), "activation": "relu", "batch_size": 32}
+    cfg = small("world_model", tmp_path, world_model=regress)
+    torch.manual_seed(0)
+    layer = SimulationLayerActor(cfg, demos, 15, 28)
+    before = layer.validate()["heldout_feature_mse_1"]
+    for _ in range(20):
+        layer.train_epoch()
+    assert layer.validate()["heldout_feature_mse_1"] < before
+    vae = {"encoder_hidden": (8,), "policy_hidden": (8,), "batch_size": 32, "alpha": 1e-2}
+    pv = small("physicsvae", tmp_path, vae=vae)
+    actor = PhysicsVAEActor(pv, demos, 15, 28, (cfg.algo.world_model, layer.learner.model.state_dict()))
+    metrics = actor.train_epoch()
+    assert metrics["sim"] > 0 and metrics["skipped_updates"] == 0  # the α term, through the layer's s′
+    out = actor.validate()
+    assert out["heldout_sim_error"] > 0 and "heldout_next_pos_error" not in out
+    with pytest.raises(ValueError, match="integrating world model"):
+        VAELearner(15, 28, VAEConfig(encoder_hidden=(8,), policy_hidden=(8,)), world_model=layer.learner.model)

@@ -112,3 +112,31 @@ def test_build_world_model_is_the_learners_network():
     assert mine.keys() == theirs.keys()
     for k in mine:
         torch.testing.assert_close(mine[k], theirs[k])  # same layers, same initialisation under one seed
+
+
+def test_physicsvaes_regress_layer_learns_the_next_features_by_mse(walk_run):
+    """kind=regress: Table 2's plain MLP from (s, a) to s′, trained by the mean squared error over every
+    element (regression_loss, worked by hand), learns one batch of walk transitions (the error falls by
+    more than half in 300 steps); rollouts longer than one step and unknown kinds are refused."""
+    from workers.losses.world_model import regression_loss
+    from workers.models.world_model import StateRegressor
+
+    loss, terms = regression_loss(torch.tensor([[1.0, 2.0], [0.0, 0.0]]), torch.tensor([[0.0, 0.0], [0.0, 2.0]]))
+    assert float(loss) == pytest.approx((1 + 4 + 0 + 4) / 4) and terms["mse"] is loss
+    torch.manual_seed(0)
+    learner = WorldModelLearner(15, 28, 1 / 30, WorldModelConfig(kind="regress", hidden=(64, 64), activation="relu",
+                                                                  rollout_steps=1, lr=1e-3))  # fmt: skip
+    assert isinstance(learner.model, StateRegressor)
+    b = batch(walk_run, steps=1)
+    first = learner.update(b)["mse"]
+    for _ in range(300):
+        last = learner.update(b)["mse"]
+    assert last < 0.5 * first
+    with torch.no_grad():
+        predicted = learner.model.next_features(b.states[:, :-1], b.actions)
+        want = ((predicted - B.features(b.states[:, 1:])) ** 2).mean()
+        torch.testing.assert_close(learner.loss(b)[1]["mse"], want)
+    with pytest.raises(ValueError, match="world_model.rollout_steps: a regress layer"):
+        WorldModelConfig(kind="regress", rollout_steps=8)
+    with pytest.raises(ValueError, match="world_model.kind: unknown"):
+        WorldModelConfig(kind="lstm")

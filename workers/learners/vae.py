@@ -25,7 +25,7 @@ from workers.losses.kl import gaussian_kl
 from workers.losses.vae import PHYSICSVAE_REDUCTIONS, controlvae_loss, physicsvae_loss, pulse_loss
 from workers.models import body_state
 from workers.models.vae import PRIOR_TYPES, VAEController
-from workers.models.world_model import WorldModel
+from workers.models.world_model import StateRegressor, WorldModel
 
 OBJECTIVES = ("controlvae", "physicsvae", "pulse")
 
@@ -166,7 +166,7 @@ class VAELearner(Learner):
         num_bodies: int,
         action_dim: int,
         config: VAEConfig | None = None,
-        world_model: WorldModel | None = None,
+        world_model: WorldModel | StateRegressor | None = None,
         seed: int = 0,
     ):
         self.config = c = config or VAEConfig()
@@ -175,6 +175,10 @@ class VAELearner(Learner):
         needs_model = c.objective == "controlvae" or (c.objective == "physicsvae" and c.alpha > 0)
         if needs_model and world_model is None:
             raise ValueError(f"the {c.objective} objective needs a world model")
+        if c.objective == "controlvae" and world_model is not None and not isinstance(world_model, WorldModel):
+            raise ValueError(
+                "the controlvae objective rolls out an integrating world model (world_model.kind=integrate)"
+            )
         self.world_model = world_model
         if world_model is not None:
             world_model.requires_grad_(False)
@@ -239,7 +243,7 @@ class VAELearner(Learner):
         q, p = self.vae.encode(s[:, :-1], s[:, 1:])
         a = self.vae.act(s[:, :-1], q.rsample(self.generator))
         if self.config.alpha > 0:
-            predicted_next = body_state.features(self.world_model(states[:, :-1], a))
+            predicted_next = self.world_model.next_features(states[:, :-1], a)
         else:
             predicted_next = s[:, 1:]
         kl = gaussian_kl(q.mean, q.log_std, p.mean, p.log_std)

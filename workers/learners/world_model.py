@@ -7,12 +7,19 @@ from dataclasses import dataclass, field
 import torch
 
 from workers.learners.base import Learner, as_tensor, make_optimizer
-from workers.losses.world_model import world_model_loss
-from workers.models.world_model import WorldModel
+from workers.losses.world_model import regression_loss, world_model_loss
+from workers.models import body_state
+from workers.models.world_model import StateRegressor, WorldModel
+
+WORLD_MODEL_KINDS = ("integrate", "regress")
 
 
 @dataclass
 class WorldModelConfig:
+    # integrate: ControlVAE's model, velocity changes integrated into the next body state, trained on
+    # T_w-step rollouts by Eq. 17 | regress: PhysicsVAE's simulation layer as Table 2 and the authors' code
+    # have it, a plain MLP from (s, a) to s′ trained by MSE on single transitions (no rollouts).
+    kind: str = "integrate"
     # Hidden layer sizes of the MLP (ControlVAE: four of 512, ELU).
     hidden: tuple[int, ...] = (512, 512, 512, 512)
     activation: str = "elu"
@@ -30,15 +37,25 @@ class WorldModelConfig:
     weights: dict[str, float] = field(default_factory=lambda: {"pos": 1.0, "rot": 1.0, "lin_vel": 0.2, "ang_vel": 0.05})
 
     def __post_init__(self) -> None:
+        if self.kind not in WORLD_MODEL_KINDS:
+            raise ValueError(f"world_model.kind: unknown kind {self.kind!r}; expected one of {WORLD_MODEL_KINDS}")
+        if self.kind == "regress" and self.rollout_steps != 1:
+            raise ValueError(
+                f"world_model.rollout_steps: a regress layer learns single transitions, got {self.rollout_steps}"
+            )
         if self.rollout_steps < 1:
             raise ValueError(f"world_model.rollout_steps must be at least 1, got {self.rollout_steps}")
         if self.lr <= 0:
             raise ValueError(f"world_model.lr must be positive, got {self.lr}")
 
 
-def build_world_model(num_bodies: int, action_dim: int, config: WorldModelConfig, dt: float) -> WorldModel:
+def build_world_model(
+    num_bodies: int, action_dim: int, config: WorldModelConfig, dt: float
+) -> WorldModel | StateRegressor:
     """The network a WorldModelConfig describes, predicting dt seconds (one control step) ahead: the
     learner's, and the frozen copies the VAE and task learners are given, are built alike."""
+    if config.kind == "regress":
+        return StateRegressor(num_bodies, action_dim, config.hidden, config.activation)
     return WorldModel(num_bodies, action_dim, config.hidden, config.activation, dt, config.integrator)
 
 
@@ -71,6 +88,10 @@ class WorldModelLearner(Learner):
 
     def loss(self, batch: WorldModelBatch) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         states, actions = self._tensors(batch)
+        if self.config.kind == "regress":
+            return regression_loss(
+                self.model.next_features(states[:, :-1], actions), body_state.features(states[:, 1:])
+            )
         predicted = self.model.rollout(states[:, 0], actions)
         return world_model_loss(predicted, states[:, 1:], self.config.weights)
 

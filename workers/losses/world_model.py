@@ -32,3 +32,10 @@ def world_model_loss(
     }
     total = sum(weights[k] * v for k, v in terms.items())
     return total, terms
+
+
+def regression_loss(predicted: torch.Tensor, recorded: torch.Tensor) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+    """PhysicsVAE's simulation layer loss: the mean squared error of predicted next-state features [..., D]
+    against the recorded ones, averaged over every element (the authors' nn.MSELoss)."""
+    mse = ((predicted - recorded) ** 2).mean()
+    return mse, {"mse": mse}

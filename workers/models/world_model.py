@@ -1,9 +1,15 @@
 """The world model ω(s' | s, a) (ControlVAE §3.4.2, after SuperTrack; PhysicsVAE's simulation layer).
 
-An MLP reads the features s of the current body state and the action, and
+`WorldModel`: an MLP reads the features s of the current body state and the action, and
 predicts each body's change of linear and angular velocity in the heading frame;
 the new body state follows by integration (`body_state.integrate`). Inputs and
 outputs are standardised with running statistics gathered from the training data.
+
+`StateRegressor`: PhysicsVAE's simulation layer as Table 2 and the authors' code have it, a
+plain MLP from (s, a) to the next state's features s′, trained by mean squared error. It
+predicts features, not body states, so it cannot roll out a ControlVAE or task learner.
+
+Both give `next_features(bs, a)`, the s′ that PhysicsVAE's α term compares.
 """
 
 from __future__ import annotations
@@ -59,6 +65,10 @@ class WorldModel(nn.Module):
         """The next body state [..., B, 13]."""
         return body_state.integrate(bs, self.delta(bs, action), self.dt, self.integrator)
 
+    def next_features(self, bs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        """s′ [..., D]: the features of the next body state."""
+        return body_state.features(self(bs, action))
+
     def rollout(self, bs0: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
         """Open-loop prediction [N, T, B, 13] from start states [N, B, 13] under actions [N, T, A]."""
         out = []
@@ -67,3 +77,22 @@ class WorldModel(nn.Module):
             bs = self(bs, actions[:, t])
             out.append(bs)
         return torch.stack(out, dim=1)
+
+
+class StateRegressor(nn.Module):
+    """s′ = MLP(s, a): features of the body state and the action in, the next state's features out."""
+
+    def __init__(self, num_bodies: int, action_dim: int, hidden: Sequence[int] = (1024, 1024), act: str = "relu"):
+        super().__init__()
+        self.num_bodies = num_bodies
+        self.action_dim = action_dim
+        state_dim = 16 * num_bodies + 3
+        self.net = mlp(state_dim + action_dim, hidden, state_dim, act)
+
+    @torch.no_grad()
+    def observe(self, bs: torch.Tensor, action: torch.Tensor, bs_next: torch.Tensor) -> None:
+        """Nothing to gather: the authors' layer reads its inputs as they are."""
+
+    def next_features(self, bs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        """s′ [..., D] from body states [..., B, 13] and actions [..., A]."""
+        return self.net(torch.cat((body_state.features(bs), action), dim=-1))
