@@ -5,7 +5,8 @@ environment's goal (`workers.goals.GoalSampler`: drawn when an episode starts,
 redrawn within it at the task's change rate, part of the policy's input), acts
 with z around μ_p(s) + μ_g(s, g) and the frozen decoder (plus the helper branch
 when σ > 0), and records per step the goal it acted for (`goal`), the task reward
-e^(−L_g) of the state it reached (`reward`, with each term under `reward/<term>`),
+of the state it reached (`reward`: e^(−L_g), or with `reward: progress` the point goal's
+d_{t−1} − d_t; each term under `reward/<term>`),
 and the helper's mean absolute deviation from the decoder's own action
 (`helper_deviation`, radians).
 
@@ -77,7 +78,10 @@ class TaskRolloutPolicy(Policy, Recorder):
         self._draw_unset_goals(sim, bs)
         b = torch.from_numpy(bs)
         s = body_state.features(b)
-        obs = goal_observation(self.config.task, b, torch.from_numpy(self.goals.goals))
+        goals = torch.from_numpy(self.goals.goals)
+        if self.config.reward == "progress":  # the distance the step starts from, d_{t−1}
+            self.before = task_terms(self.config.task, b, goals)["distance"].numpy()
+        obs = goal_observation(self.config.task, b, goals)
         eps = None
         if self.stochastic:
             eps = torch.randn((len(bs), self.controller.latent_dim), generator=self.generator)
@@ -102,7 +106,10 @@ class TaskRolloutPolicy(Policy, Recorder):
     def record(self, t: int, sim: BatchedSim, result: StepResult) -> None:
         bs, goal = torch.from_numpy(body_state.pack(result.kin)), torch.from_numpy(self.goals.goals)
         terms = task_terms(self.config.task, bs, goal)
-        self.reward[t] = np.exp(-sum(self.config.weights[k] * v for k, v in terms.items()).numpy())
+        if self.config.reward == "progress":
+            self.reward[t] = self.before - terms["distance"].numpy()
+        else:
+            self.reward[t] = np.exp(-sum(self.config.weights[k] * v for k, v in terms.items()).numpy())
         for k, v in terms.items():
             self.terms.setdefault(k, np.empty_like(self.reward))[t] = v.numpy()
         self.goals.advance(sim, bs.numpy())

@@ -95,7 +95,7 @@ def test_ablation_gp_at_smoke_scale_compares_four_penalties_with_curves_and_the_
     artifacts = {a.path for a in client.list_artifacts(parent.info.run_id)}
     assert {"comparison.png", "curves.png", "comparison.md", "comparison.json"} <= artifacts
     table = (sweep_dir / "comparison.md").read_text()
-    assert "| 40.0 | 1 |" in table and "pose error after DTW (m)" in table and "walk 0.030 m" in table
+    assert "| 40.0 | 1 |" in table and "pose error after DTW, Eq. 10 as written" in table and "walk 0.030 m" in table
     assert "final episode return" in table  # the learning curves' summary per point
 
 
@@ -113,7 +113,7 @@ def test_ablation_sigma_at_smoke_scale_shares_one_skill_stage_and_plots_success_
     artifacts = {a.path for a in client.list_artifacts(parent.info.run_id)}
     assert {"comparison.md", "success_style.png", "curves.png"} <= artifacts
     text = (sweep_dir / "comparison.md").read_text()
-    assert "| rough | 1.0 | 1 |" in text and "rough terrain needs the helper" in text
+    assert "| rough | 1.0 | 1 |" in text and "rough terrain: with the helper" in text
 
 
 @pytest.mark.slow

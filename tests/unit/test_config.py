@@ -186,6 +186,7 @@ def test_the_task_presets_name_their_skill_stages():
     sigma = validate(composed("+experiment=ablation_sigma", "terrain.kind=rough", "algo.task.sigma=0.5"))
     assert sigma.algo.needs == {"skill": "controlvae"} and sigma.terrain.kind == "rough"
     assert sigma.algo.task.trainer == "ppo" and sigma.algo.task.task == "point_goal"
+    assert sigma.algo.task.reward == "progress"  # PhysicsVAE Sec. 5.2's point-goal reward
     with pytest.raises(ConfigError, match="algo.task.trainer"):
         validate(composed("algo=task", "algo.task.trainer=mpc"))
     with pytest.raises(ConfigError, match="terrain.kind"):

@@ -18,8 +18,8 @@ from workers.task_policy import TaskRolloutPolicy
 SKILL = VAEConfig(latent_dim=8, encoder_hidden=(32,), policy="mlp", policy_hidden=(32,))
 
 
-def task_worker(character, library, task: str, sigma: float, num_envs: int = 4, seed: int = 0):
-    config = TaskConfig(task=task, sigma=sigma, hidden=(32,), helper_hidden=(32,), change_rate=3.0)
+def task_worker(character, library, task: str, sigma: float, num_envs: int = 4, seed: int = 0, **kw):
+    config = TaskConfig(task=task, sigma=sigma, hidden=(32,), helper_hidden=(32,), change_rate=3.0, **kw)
     policy = TaskRolloutPolicy(character.num_bodies, character.num_actions, config, control_hz=30.0)
     worker = RolloutWorker(character, library, num_envs, policy, seed=seed)
     torch.manual_seed(0)
@@ -53,6 +53,22 @@ def test_the_worker_records_goals_rewards_and_the_helpers_deviation(character, w
         assert not deviation.any()  # the applied action is the decoder's
     else:
         assert 0 < deviation.max() <= sigma
+
+
+def test_the_progress_reward_is_how_much_nearer_the_step_brought_the_root(character, walk_run):
+    """reward=progress (PhysicsVAE Sec. 5.2's point goal): d_{t-1} − d_t, the root's horizontal distance to the
+    goal in force before the step minus after it, for that same goal (goals change within episodes here)."""
+    worker, _ = task_worker(character, walk_run, "point_goal", 0.0, trainer="ppo", reward="progress")
+    traj = worker.collect(40)
+    goals = torch.from_numpy(traj.extras["goal"])
+    before = task_terms("point_goal", torch.from_numpy(traj.states), goals)["distance"].numpy()
+    after = task_terms("point_goal", torch.from_numpy(traj.next_states), goals)["distance"].numpy()
+    np.testing.assert_allclose(traj.extras["reward"], before - after, atol=1e-5)
+    assert (traj.extras["reward"] < 0).any() or (traj.extras["reward"] > 0).any()
+    with pytest.raises(ValueError, match="task.reward: progress is the point goal's reward under the ppo trainer"):
+        TaskConfig(task="heading", trainer="ppo", reward="progress")
+    with pytest.raises(ValueError, match="task.reward: unknown"):
+        TaskConfig(reward="sparse")
 
 
 def test_evaluation_is_deterministic_and_measures_the_helper_in_degrees(character, walk_run):

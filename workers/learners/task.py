@@ -23,6 +23,7 @@ from workers.models.vae import VAEController
 from workers.models.world_model import WorldModel
 
 TRAINERS = ("model", "ppo")
+TASK_REWARDS = ("exp", "progress")
 
 
 @dataclass
@@ -43,6 +44,9 @@ class TaskConfig:
     sigma: float = 0.0
     # w_z on ‖μ_g‖², keeping the task policy near the prior (ControlVAE: 20).
     w_z: float = 20.0
+    # The PPO trainer's reward: exp, e^(-L_g) (ControlVAE's) | progress, d_{t-1} − d_t, how much nearer the
+    # root came to the target in the step (PhysicsVAE Sec. 5.2's point goal; point_goal and ppo only).
+    reward: str = "exp"
     # Weights of the task's named terms and of the fall penalty.
     weights: dict[str, float] = field(default_factory=lambda: dict(DEFAULT_WEIGHTS))
     # Root height below which L_fall grows (ControlVAE: 0.5 m).
@@ -76,6 +80,10 @@ class TaskConfig:
             raise ValueError("task.change_rate must be >= 0 and buffer_size >= 1")
         if self.sigma < 0:
             raise ValueError(f"task.sigma must be non-negative, got {self.sigma}")
+        if self.reward not in TASK_REWARDS:
+            raise ValueError(f"task.reward: unknown reward {self.reward!r}; expected one of {TASK_REWARDS}")
+        if self.reward == "progress" and (self.task != "point_goal" or self.trainer != "ppo"):
+            raise ValueError("task.reward: progress is the point goal's reward under the ppo trainer")
         if self.w_z < 0:
             raise ValueError(f"task.w_z must be non-negative, got {self.w_z}")
 
