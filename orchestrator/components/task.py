@@ -4,7 +4,8 @@
 its VAE config and decoder/prior weights, whether a task acts as a residual on its
 prior's mean (PULSE's `prior_action`; always for the others), and, for the
 model-based trainer, the world model to learn through (ControlVAE's own; PhysicsVAE's
-simulation layer, from its world_model stage). Anything else is refused with the
+simulation layer, from its world_model stage, when that stage's layer integrates: Table 2's
+regress layer predicts features and cannot be rolled out). Anything else is refused with the
 stage and run named.
 """
 
@@ -55,7 +56,14 @@ def _world_model(up: Upstream, cfg: Config, state: dict[str, Any]) -> tuple[Any,
     if "world_model" in up.lineage:
         cache = up.cache.parent / f"{up.role}.world_model"
         layer = existing_run(f"{up.role}.world_model", up.lineage["world_model"], up.uri, cache)
-        return layer.config().algo.world_model, layer_state(layer)
+        layer_cfg = layer.config().algo.world_model
+        if layer_cfg.kind != "integrate":
+            raise StageError(
+                f"{up.describe()}: its simulation layer (world_model.kind={layer_cfg.kind}) predicts features and "
+                "cannot be rolled out by the model-based task trainer; use algo.task.trainer=ppo, or a world_model "
+                "stage with algo.world_model.kind=integrate"
+            )
+        return layer_cfg, layer_state(layer)
     raise StageError(
         f"{up.describe()}: a {cfg.algo.name} skill model has no world model to learn through; use algo.task.trainer=ppo"
     )

@@ -182,3 +182,12 @@ def test_task_learner_updates_and_rejects_unknown_task(walk_run):
         TaskConfig(task="dance")
     with pytest.raises(ValueError, match="task.sigma must be non-negative"):
         TaskConfig(sigma=-0.1)
+
+
+def test_the_model_based_trainer_refuses_a_layer_it_cannot_roll_out():
+    """PhysicsVAE's Table 2 layer (world_model.kind=regress) predicts features, not body states."""
+    from workers.models.world_model import StateRegressor
+
+    vae = VAEController(243, 28, latent_dim=8, encoder_hidden=(16,), policy="mlp", policy_hidden=(16,))
+    with pytest.raises(ValueError, match="integrating world model"):
+        TaskLearner(vae, StateRegressor(15, 28, hidden=(8,)), 28, TaskConfig(hidden=(16,)))

@@ -110,6 +110,10 @@ class TaskLearner(Learner):
         self.config = c = config or TaskConfig()
         self.policy = task_policy(controller, action_dim, c, prior_action)
         super().__init__(self.policy, make_optimizer(c.optimizer, self.policy.parameters(), c.lr), c.grad_clip)
+        if not isinstance(world_model, WorldModel):
+            raise ValueError(
+                "the model-based task trainer rolls out an integrating world model (world_model.kind=integrate)"
+            )
         self.controller = controller.requires_grad_(False).eval()
         self.world_model = world_model.requires_grad_(False).eval()
 
