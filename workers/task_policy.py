@@ -75,23 +75,25 @@ class TaskRolloutPolicy(Policy, Recorder):
         """(applied actions [M, A], the decoder's own actions [M, A]) for body states bs [M, B, 13]."""
         if self.module is None:
             raise RuntimeError("the task policy has no skill model yet (configure({'skill': ...}) first)")
-        self._draw_unset_goals(sim, bs)
+        self._start_step(sim, bs)
         b = torch.from_numpy(bs)
         s = body_state.features(b)
-        goals = torch.from_numpy(self.goals.goals)
-        if self.config.reward == "progress":  # the distance the step starts from, d_{t−1}
-            self.before = task_terms(self.config.task, b, goals)["distance"].numpy()
-        obs = goal_observation(self.config.task, b, goals)
+        obs = goal_observation(self.config.task, b, torch.from_numpy(self.goals.goals))
         eps = None
         if self.stochastic:
             eps = torch.randn((len(bs), self.controller.latent_dim), generator=self.generator)
         applied, decoded, _ = self.module.act(self.controller, s, obs, eps)
         return applied.numpy(), decoded.numpy()
 
-    def _draw_unset_goals(self, sim: BatchedSim, bs: np.ndarray) -> None:
+    def _start_step(self, sim: BatchedSim, bs: np.ndarray) -> None:
+        """Before acting on body states bs: draw the goals not drawn yet and, for the progress reward, keep the
+        distance the step starts from, d_{t−1}."""
         if len(self.unset):
             self.goals.reset(sim, bs, self.unset)
             self.unset = self.unset[:0]
+        if self.config.reward == "progress":
+            goals = torch.from_numpy(self.goals.goals)
+            self.before = task_terms(self.config.task, torch.from_numpy(bs), goals)["distance"].numpy()
 
     def act(self, sim: BatchedSim, bs: np.ndarray) -> tuple[np.ndarray, dict[str, np.ndarray]]:
         applied, decoded = self.actions(sim, bs)
@@ -156,7 +158,7 @@ class TaskPPOPolicy(TaskRolloutPolicy):
             self.module.load_state_dict(self.weights.state)
 
     def observe(self, sim: BatchedSim, bs: np.ndarray) -> np.ndarray:
-        self._draw_unset_goals(sim, bs)
+        self._start_step(sim, bs)
         b = torch.from_numpy(bs)
         goal = goal_observation(self.config.task, b, torch.from_numpy(self.goals.goals))
         return torch.cat((body_state.features(b), goal), dim=-1).numpy()

@@ -71,6 +71,27 @@ def test_the_progress_reward_is_how_much_nearer_the_step_brought_the_root(charac
         TaskConfig(reward="sparse")
 
 
+def test_the_ppo_task_policy_records_the_progress_reward_too(character, walk_run):
+    """The PPO trainer's policy (ablation_sigma's) acts through its own path: the same d_{t-1} − d_t."""
+    from workers.learners.base import Weights
+    from workers.learners.ppo import PPOConfig
+    from workers.task_policy import TaskPPOPolicy
+
+    config = TaskConfig(task="point_goal", trainer="ppo", reward="progress", sigma=0.5, change_rate=3.0)
+    ppo = PPOConfig(policy_hidden=(16,), value_hidden=(16,))
+    policy = TaskPPOPolicy(character.num_bodies, character.num_actions, config, 30.0, ppo)
+    worker = RolloutWorker(character, walk_run, 4, policy, seed=0)
+    torch.manual_seed(0)
+    controller = build_controller(character.num_bodies, character.num_actions, SKILL)
+    policy.configure({"skill": {"config": SKILL, "module": controller.state_dict(), "prior_action": True}})
+    worker.set_weights(Weights(1, policy.module.state_dict()))
+    traj = worker.collect(30)
+    goals = torch.from_numpy(traj.extras["goal"])
+    before = task_terms("point_goal", torch.from_numpy(traj.states), goals)["distance"].numpy()
+    after = task_terms("point_goal", torch.from_numpy(traj.next_states), goals)["distance"].numpy()
+    np.testing.assert_allclose(traj.extras["reward"], before - after, atol=1e-5)
+
+
 def test_evaluation_is_deterministic_and_measures_the_helper_in_degrees(character, walk_run):
     worker, _ = task_worker(character, walk_run, "point_goal", 0.5)
     a = evaluate_task_policy(worker.policy, character, walk_run, 3, 1.0, seed=7)
