@@ -116,10 +116,9 @@ def seeds_needed(spread: float, effect: float, confidence: float, sides: int = 2
     MAX_SEEDS + 1 when more than MAX_SEEDS are needed."""
     if not math.isfinite(effect) or effect == 0 or not math.isfinite(spread):
         return None
-    for n in range(2, MAX_SEEDS + 1):
-        if stats.t.ppf(0.5 + confidence / 2, sides * (n - 1)) * math.sqrt(spread / n) < abs(effect):
-            return n
-    return MAX_SEEDS + 1
+    n = np.arange(2, MAX_SEEDS + 1)
+    resolved = stats.t.ppf(0.5 + confidence / 2, sides * (n - 1)) * np.sqrt(spread / n) < abs(effect)
+    return int(n[resolved.argmax()]) if resolved.any() else MAX_SEEDS + 1
 
 
 def footnote(claims: int) -> str:

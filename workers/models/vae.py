@@ -62,8 +62,8 @@ class Prior(nn.Module):
         out = 2 * latent_dim if kind == "learned" else latent_dim
         if kind == "standard_normal":
             self.net = None
-        elif plain:
-            self.net = PlainMLP(state_dim, 0, hidden, out, act)
+        elif plain:  # s once, at the input
+            self.net = mlp(state_dim, hidden, out, act)
         else:
             self.net = ConcatMLP(state_dim, state_dim, hidden, out, act)
         self.plain = plain
@@ -73,7 +73,7 @@ class Prior(nn.Module):
         if self.net is None:
             zero = s.new_zeros(s.shape[:-1] + (self.latent_dim,))
             return Gaussian(zero, zero)
-        out = self.net(s, s[..., :0]) if self.plain else self.net(s, s)
+        out = self.net(s) if self.plain else self.net(s, s)
         if self.kind == "conditional":
             return Gaussian(out, out.new_full((), self.log_sigma_p))
         mean, log_std = out.chunk(2, dim=-1)
