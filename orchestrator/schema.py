@@ -169,7 +169,14 @@ class ImitationConfig:
     # DeepMimic's scales. 0 drops a term.
     weights: dict[str, float] = field(default_factory=lambda: dict(IMITATION_WEIGHTS))
 
+    # What the expert observes beside s (workers/policies.py): "imitation", the reference's next state in its
+    # own heading frame (blind to drift from the clip); "mimic", PULSE's s_g-mimic (§4.1), the reference's next
+    # state as offsets from the character in the character's heading frame (workers/tracking_goal.py).
+    observation: str = "imitation"
+
     def __post_init__(self) -> None:
+        if self.observation not in ("imitation", "mimic"):
+            raise ConfigError(f"algo.imitation.observation: expected 'imitation' or 'mimic', got {self.observation!r}")
         for key, w in self.weights.items():
             if key not in IMITATION_TERMS:
                 raise ConfigError(f"algo.imitation.weights.{key}: unknown term; expected one of {IMITATION_TERMS}")

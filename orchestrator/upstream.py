@@ -130,7 +130,7 @@ def expert_weights(up: Upstream) -> Weights:
         payload = {
             "kind": "ppo",
             "config": cfg.algo.ppo,
-            "observation": cls.observation,
+            "observation": cls.observation_of(cfg),
             "residual": cls.residual,
             "module": state["ppo"]["module"],
         }

@@ -18,6 +18,7 @@ from workers.models import body_state
 from workers.models.actor_critic import ActorCritic
 from workers.motion.library import MotionLibrary
 from workers.rewards import imitation_observation
+from workers.tracking_goal import mimic_goal
 
 
 def teacher_actions(
@@ -28,11 +29,13 @@ def teacher_actions(
     clip_id: np.ndarray | int,
     frame: np.ndarray | int,
     residual: bool = True,
+    observation: str = "imitation",
 ) -> np.ndarray:
     """The tracking expert's deterministic PD targets [N, A] (float32) for stored states.
 
-    module: the expert, a PPO `ActorCritic` acting on the "imitation" observation
-    (s, s̃_{t+1}) = (features(states), library.features(clip_id, frame + 1)).
+    module: the expert, a PPO `ActorCritic` acting on `observation`: "imitation",
+    (s, s̃_{t+1}) = (features(states), library.features(clip_id, frame + 1)), or "mimic",
+    s and PULSE's s_g-mimic toward the reference's body states at frame + 1 (`workers.tracking_goal`).
     states: body states [N, B, 13] (`body_state.pack`); row i is at frame `frame[i]`
     of clip `clip_id[i]` (ints broadcast to all rows), i.e. `sim.start_frame + sim.steps`
     of the environment it came from. The action is the actor's mean μ(o) and, with
@@ -50,7 +53,14 @@ def teacher_actions(
     frame = np.broadcast_to(np.asarray(frame, dtype=int), (n,))
     with evaluation_mode(module):
         s = body_state.features_np(states)  # as the policy observes
-        obs = imitation_observation(s, library.features(clip_id, frame + 1))
+        if observation == "imitation":
+            obs = imitation_observation(s, library.features(clip_id, frame + 1))
+        elif observation == "mimic":
+            ref = body_state.pack(library.state(clip_id, frame + 1))
+            goal = mimic_goal(torch.from_numpy(states), torch.from_numpy(ref)).numpy()
+            obs = np.concatenate((s, goal), axis=-1)
+        else:
+            raise ValueError(f"a tracking expert observes 'imitation' or 'mimic', not {observation!r}")
         mean = module.mean(torch.from_numpy(obs)).numpy()
     if not residual:
         return mean

@@ -10,15 +10,16 @@ trajectories whichever process runs the worker.
   clip with z from the posterior q(z | s_t, s̃_{t+1}) or, with probability
   `prior_probability`, from the prior p(z | s_t) at every step; the action is the
   policy's mean plus Gaussian noise of std `action_noise` (σ_π).
-- `GaussianPolicy`: the PPO actor-critic, π(a | o) = N(μ(o), σ²) with fixed σ,
-  acting on the observation `obs`: "state" (s, AMP's policy input for
-  single-clip imitation) or "imitation" (s and the reference's s̃_{t+1}, the
-  tracking expert's). With `residual`, the sampled action is an offset from the
-  reference's next pose (the PD targets that hold it), as tracking controllers
-  commonly act: the untrained policy then starts as PD tracking of the clip
-  rather than holding the zero pose, which earns no imitation reward at all.
-  The trajectory's `actions` are always the PD targets applied; the sample that
-  the log-probability refers to is the extra `action`.
+- `GaussianPolicy`: the PPO actor-critic, π(a | o) = N(μ(o), σ²) with fixed σ, acting on
+  the observation `obs`: "state" (s, AMP's policy input for single-clip imitation),
+  "imitation" (s and the reference's s̃_{t+1}, the tracking expert's) or "mimic" (s and
+  PULSE's s_g-mimic, the reference's next state as offsets from the character:
+  `workers.tracking_goal`). With `residual`, the sampled action is an offset from the
+  reference's next pose (the PD targets that hold it), as tracking controllers commonly
+  act: the untrained policy then starts as PD tracking of the clip rather than holding
+  the zero pose, which earns no imitation reward at all. The trajectory's `actions` are
+  always the PD targets applied; the sample that the log-probability refers to is the
+  extra `action`.
 
 Inference runs batched, in eval mode and without gradients.
 """
@@ -37,14 +38,18 @@ from workers.models.actor_critic import ActorCritic
 from workers.models.deploy import ActorMean, PriorMeanController
 from workers.rewards import imitation_observation
 from workers.sim.env import BatchedSim
+from workers.tracking_goal import goal_dim, next_goal
 
-OBSERVATIONS = ("state", "imitation")
+OBSERVATIONS = ("state", "imitation", "mimic")
 EXPERT_KINDS = ("ppo", "vae")
 
 
 def observation_dim(kind: str, state_dim: int) -> int:
+    """The size of observation `kind` for states s of size state_dim (`StateLayout.dim`, 16·B + 3)."""
     if kind not in OBSERVATIONS:
         raise ValueError(f"unknown observation {kind!r}; expected one of {OBSERVATIONS}")
+    if kind == "mimic":
+        return state_dim + goal_dim("mimic", (state_dim - 3) // 16)
     return state_dim if kind == "state" else 2 * state_dim
 
 
@@ -56,7 +61,10 @@ def observe(kind: str, sim: BatchedSim, bs: np.ndarray) -> np.ndarray:
     s = body_state.features_np(bs)
     if kind == "state":
         return s
-    return imitation_observation(s, sim.reference_next_features())
+    if kind == "imitation":
+        return imitation_observation(s, sim.reference_next_features())
+    g = next_goal("mimic", sim, bs).numpy()
+    return np.concatenate((s, g), axis=-1).astype(np.float32)
 
 
 class Policy:
@@ -122,8 +130,7 @@ class VAEPolicy(Policy):
     @torch.no_grad()
     def act(self, sim: BatchedSim, bs: np.ndarray) -> tuple[np.ndarray, dict[str, np.ndarray]]:
         s = body_state.features(torch.from_numpy(bs))
-        ref_next = torch.from_numpy(sim.reference_next_features().astype(np.float32))
-        posterior, prior = self.controller.encode(s, ref_next)
+        posterior, prior = self.controller.encode(s, next_goal(self.controller.goal, sim, bs))
         use_prior = torch.from_numpy(self.use_prior)[:, None]
         mean = torch.where(use_prior, prior.mean, posterior.mean)
         log_std = torch.where(use_prior, prior.log_std, posterior.log_std)
@@ -235,8 +242,7 @@ class ExpertPolicy(Policy):
         if self.controller is None:
             raise RuntimeError("the expert has no weights yet")
         s = body_state.features(torch.from_numpy(bs))
-        ref_next = sim.reference_next_features()
-        posterior, _ = self.controller.encode(s, torch.from_numpy(ref_next.astype(np.float32)))
+        posterior, _ = self.controller.encode(s, next_goal(self.controller.goal, sim, bs))
         return self.controller.act(s, posterior.mean).numpy()
 
     def act(self, sim: BatchedSim, bs: np.ndarray) -> tuple[np.ndarray, dict[str, np.ndarray]]:

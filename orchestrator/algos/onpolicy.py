@@ -32,7 +32,8 @@ METRIC_PREFIX = {"discriminator": "disc"}  # DESIGN's metric namespaces where th
 
 
 class OnPolicy(Method):
-    """A PPO method; subclasses set `observation` and may add components and rewards."""
+    """A PPO method; subclasses set `observation` (or `observation_of` where a config decides it) and may add
+    components and rewards."""
 
     observation = "state"
     residual = False  # actions are offsets from the reference's next pose (workers.policies.GaussianPolicy)
@@ -42,15 +43,22 @@ class OnPolicy(Method):
         super().__init__(cfg, character, upstream)
         self.pending: list[Any] = []  # the batch being collected, with `algo.loop.overlap`
 
+    @classmethod
+    def observation_of(cls, cfg) -> str:
+        """What the policy observes under `cfg` (`workers.policies.OBSERVATIONS`)."""
+        return cls.observation
+
     def components(self) -> list[Component]:
-        obs_dim = observation_dim(self.observation, StateLayout(self.character.num_bodies).dim)
+        obs_dim = observation_dim(self.observation_of(self.cfg), StateLayout(self.character.num_bodies).dim)
         return [Component("ppo", PPOActor, (self.cfg, obs_dim, self.character.num_actions), actor="learner-ppo")]
 
     @classmethod
     def make_policy(cls, cfg, character) -> GaussianPolicy:
-        obs_dim = observation_dim(cls.observation, StateLayout(character.num_bodies).dim)
-        module = build_actor_critic(obs_dim, character.num_actions, cfg.algo.ppo)
-        return GaussianPolicy(module, cls.observation, cls.residual)
+        obs = cls.observation_of(cfg)
+        module = build_actor_critic(
+            observation_dim(obs, StateLayout(character.num_bodies).dim), character.num_actions, cfg.algo.ppo
+        )
+        return GaussianPolicy(module, obs, cls.residual)
 
     def rewards_and_updates(self, trainer, trajectories: list[Any]) -> tuple[Any, dict[str, Any]]:
         """The rewards PPO trains on, and the updates of the method's other learners on the same trajectories:

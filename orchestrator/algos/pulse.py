@@ -35,6 +35,7 @@ from workers.evaluation.success import tracking_success
 from workers.learners.vae import build_controller
 from workers.models import body_state
 from workers.policies import VAEPolicy, expert_module
+from workers.tracking_goal import next_goal
 
 
 class Pulse(ReplayFed):
@@ -96,8 +97,7 @@ class Pulse(ReplayFed):
         def student(sim, bs):  # the encoder's mean given the reference's next state
             s = body_state.features(torch.from_numpy(bs))
             frames = sim.start_frame + sim.steps
-            ref_next = torch.from_numpy(sim.reference_next_features().astype(np.float32))
-            q, _ = controller.encode(s, ref_next)
+            q, _ = controller.encode(s, next_goal(controller.goal, sim, bs))
             a = controller.act(s, q.mean).numpy()
             visited.append((bs.copy(), sim.clip_id.copy(), frames.copy(), a))
             return a
@@ -109,7 +109,9 @@ class Pulse(ReplayFed):
         states, clips, frames, actions = (np.concatenate(x) for x in zip(*visited, strict=True))
         teacher = self.teacher.state
         module = expert_module(teacher, character.num_bodies, character.num_actions)
-        labels = teacher_actions(module, library, character, states, clips, frames, teacher["residual"])
+        labels = teacher_actions(
+            module, library, character, states, clips, frames, teacher["residual"], teacher["observation"]
+        )
         metrics = {
             "eval/success_rate_pulse": float(track["success_rate_pulse"]),
             "eval/success_rate_every_joint": float(track["success_rate_every_joint"]),

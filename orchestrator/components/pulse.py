@@ -32,7 +32,7 @@ class PulseActor(LearnerActor):
         self.character, self.library = load_character_and_library(cfg)
         t = expert_weights(expert).state  # downloaded here: a restarted actor needs nothing from the driver
         self.teacher = expert_module(t, num_bodies, action_dim)
-        self.residual = bool(t["residual"])
+        self.residual, self.observation = bool(t["residual"]), str(t["observation"])
         self.learner = VAELearner(num_bodies, action_dim, cfg.algo.vae, seed=seed_of(cfg, 4))
 
     def labels(self, states: np.ndarray, clip_id: np.ndarray, frame: np.ndarray) -> np.ndarray:
@@ -46,6 +46,7 @@ class PulseActor(LearnerActor):
             clip_id.reshape(-1),
             frame.reshape(-1),
             self.residual,
+            self.observation,
         )
         return flat.reshape(n, steps, -1)
 

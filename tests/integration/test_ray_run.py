@@ -106,8 +106,9 @@ def test_amp_learners_run_as_named_actors_and_come_back_from_the_last_checkpoint
 
 
 def test_the_physicsvae_and_pulse_stages_run_on_ray_actors(smoke, tmp_path):
-    """tracker -> demos (collected by the Ray rollout workers) -> world_model -> physicsvae, then pulse on the
-    same expert, every learner an actor; each stage's run finishes in the shared store."""
+    """tracker -> demos (collected by the Ray rollout workers) -> world_model -> physicsvae, then pulse on its
+    own expert (a tracker observing s_g-mimic), every learner an actor; each stage's run finishes in the
+    shared store."""
     from mlflow.tracking import MlflowClient
 
     from orchestrator.build import run
@@ -121,7 +122,7 @@ def test_the_physicsvae_and_pulse_stages_run_on_ray_actors(smoke, tmp_path):
     for r in runs:
         by_algo.setdefault(r.data.tags["algo"], []).append(r)
     assert {a: len(rs) for a, rs in by_algo.items()} == {
-        "tracker": 1,
+        "tracker": 2,
         "demos": 1,
         "world_model": 1,
         "physicsvae": 1,

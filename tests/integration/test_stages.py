@@ -204,9 +204,13 @@ def test_pulse_distillation_lowers_the_action_error_on_the_students_own_states(p
     uri, root = pipeline["uri"], pipeline["root"]
     cfg = smoke_config(root / "pulse", "algo=pulse", f"tracking.uri={uri}", "algo.loop.iterations=16")
     run(cfg)
-    assert len(runs_of(uri, "tracker")) == 1  # the expert stage was reused
+    # PULSE's teacher observes s_g-mimic (conf/algo/pulse.yaml): a tracker stage of its own beside the
+    # pipeline's, which observes the reference in its own frame.
+    trackers = {r.data.params["algo.imitation.observation"]: r.info.run_id for r in runs_of(uri, "tracker")}
+    assert set(trackers) == {"imitation", "mimic"}
     (pulse,) = runs_of(uri, "pulse")
-    assert pulse.data.tags["expert_run_id"] == runs_of(uri, "tracker")[0].info.run_id
+    assert pulse.data.tags["expert_run_id"] == trackers["mimic"]
+    assert pulse.data.params["algo.vae.goal"] == "mimic"
     history = sorted(MlflowClient(uri).get_metric_history(pulse.info.run_id, "vae/distill"), key=lambda m: m.step)
     first, last = history[0].value, np.mean([m.value for m in history[-3:]])
     assert last < 0.2 * first, [round(m.value, 3) for m in history]

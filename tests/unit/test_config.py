@@ -145,7 +145,9 @@ def test_pulse_prior_action_needs_the_learned_prior():
     with pytest.raises(ConfigError, match="algo.pulse.prior_action: a residual on the prior's mean"):
         validate(composed("algo=pulse", "algo.vae.prior=standard_normal"))
     cfg = validate(composed("algo=pulse", "algo.vae.prior=standard_normal", "algo.pulse.prior_action=false"))
-    assert cfg.algo.vae.prior == "standard_normal" and cfg.algo.needs == {"expert": "tracker"}
+    assert cfg.algo.vae.prior == "standard_normal" and cfg.algo.needs == {
+        "expert": "tracker algo.imitation.observation=mimic"
+    }
 
 
 def test_stage_needs_are_checked_with_the_key_named():

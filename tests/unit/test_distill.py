@@ -38,13 +38,14 @@ def hold(library):
     return act
 
 
-def test_teacher_actions_equal_the_policys_mean_action_in_one_batch(character, walk_run):
+@pytest.mark.parametrize("observation", ["imitation", "mimic"])
+def test_teacher_actions_equal_the_policys_mean_action_in_one_batch(character, walk_run, observation):
     torch.manual_seed(0)
     sim = BatchedSim(character, walk_run, 4, seed=1)  # random reference starts on both clips
-    module = build_actor_critic(observation_dim("imitation", sim.state_dim), sim.action_dim, SMALL)
+    module = build_actor_critic(observation_dim(observation, sim.state_dim), sim.action_dim, SMALL)
     module.obs_norm.update(torch.randn(64, module.obs_dim) * 3 + 1)  # a non-trivial normaliser
-    residual = GaussianPolicy(module, "imitation", residual=True)
-    plain = GaussianPolicy(module, "imitation", residual=False)
+    residual = GaussianPolicy(module, observation, residual=True)
+    plain = GaussianPolicy(module, observation, residual=False)
     states, clips, frames, want, want_plain = [], [], [], [], []
     bs = body_state.pack(sim.kin_state())
     for _ in range(5):  # the closed loop visits states off the reference
@@ -56,15 +57,15 @@ def test_teacher_actions_equal_the_policys_mean_action_in_one_batch(character, w
         bs = body_state.pack(sim.step(want[-1]).kin)
     states, clips, frames = np.concatenate(states), np.concatenate(clips), np.concatenate(frames)
     module.train()
-    got = teacher_actions(module, walk_run, character, states, clips, frames)
+    got = teacher_actions(module, walk_run, character, states, clips, frames, observation=observation)
     assert got.shape == (20, sim.action_dim) and got.dtype == np.float32
     np.testing.assert_allclose(got, np.concatenate(want), atol=1e-5)
-    got_plain = teacher_actions(module, walk_run, character, states, clips, frames, residual=False)
+    got_plain = teacher_actions(module, walk_run, character, states, clips, frames, False, observation)
     np.testing.assert_allclose(got_plain, np.concatenate(want_plain), atol=1e-5)
     assert np.abs(got - got_plain).max() > 0.1  # the residual base is really added
     assert module.training  # the module's mode is restored
     # One clip and frame for all rows broadcast.
-    one = teacher_actions(module, walk_run, character, states[:1], int(clips[0]), int(frames[0]))
+    one = teacher_actions(module, walk_run, character, states[:1], int(clips[0]), int(frames[0]), True, observation)
     np.testing.assert_allclose(one, got[:1], atol=1e-6)
     with pytest.raises(ValueError, match="body states"):
         teacher_actions(module, walk_run, character, states[0], clips[0], frames[0])
@@ -124,7 +125,8 @@ def test_every_joint_rule_is_stricter_than_the_mean_joint_rule(character, walk_r
     assert default["per_clip"]["humanoid3d_walk"]["success_every_joint"]  # 0.144 m <= 0.5 m
 
 
-def test_the_pulse_learner_labels_each_window_state_at_its_own_frame(character, walk_run):
+@pytest.mark.parametrize("observation", ["imitation", "mimic"])
+def test_the_pulse_learner_labels_each_window_state_at_its_own_frame(character, walk_run, observation):
     """PulseActor.batch: window state t, stored at reference frame `frame + t` (as the rollout records it,
     sim.start_frame + sim.steps before the step), is labelled with the teacher's action there, the
     action GaussianPolicy.mean_action gave in the simulator; a label one frame off fails."""
@@ -133,8 +135,8 @@ def test_the_pulse_learner_labels_each_window_state_at_its_own_frame(character, 
 
     torch.manual_seed(0)
     sim = BatchedSim(character, walk_run, 3, seed=2)
-    module = build_actor_critic(observation_dim("imitation", sim.state_dim), sim.action_dim, SMALL)
-    policy = GaussianPolicy(module, "imitation", residual=True)
+    module = build_actor_critic(observation_dim(observation, sim.state_dim), sim.action_dim, SMALL)
+    policy = GaussianPolicy(module, observation, residual=True)
     first_clip, first_frame = sim.clip_id.copy(), sim.start_frame + sim.steps
     states, want = [body_state.pack(sim.kin_state())], []
     for _ in range(6):
@@ -143,6 +145,7 @@ def test_the_pulse_learner_labels_each_window_state_at_its_own_frame(character, 
     assert (sim.steps == 6).all()  # no episode restarted inside the window
     actor = PulseActor.__new__(PulseActor)
     actor.character, actor.library, actor.teacher, actor.residual = character, walk_run, module, True
+    actor.observation = observation
     window = WindowBatch(np.stack(states, 1), np.stack(want, 1), first_clip, first_frame, np.zeros(3, int))
     batch = actor.batch(window)
     np.testing.assert_allclose(batch.actions, np.stack(want, 1), atol=1e-5)

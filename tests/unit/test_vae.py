@@ -384,3 +384,38 @@ def test_vae_nc_is_controlvae_with_a_unit_posterior():
     assert abs(float(z.mean())) < 0.05 and abs(float(z.std()) - 1.0) < 0.05  # sampling the prior is N(0, I)
     with pytest.raises(ValueError, match="posterior_std"):
         VAEConfig(posterior_std=0.0)
+
+
+def test_pulses_mimic_goal_is_what_its_posterior_reads_and_shows_drift(walk_run):
+    """With vae.goal=mimic the encoder reads PULSE's s_g-mimic of (state t, reference t + 1) through a
+    normaliser of its own: the KL term equals the one worked from that goal, and moving the reference 1 m
+    sideways (drift) changes it, where the reference-frame goal cannot see the move."""
+    from workers.models import body_state
+    from workers.tracking_goal import mimic_goal
+
+    batch = random_batch(walk_run)
+    moved = VAEBatch(batch.states, batch.reference.clone(), batch.actions)
+    moved.reference[..., 1] += 1.0
+    kls = {}
+    for goal in ("mimic", "reference"):
+        torch.manual_seed(0)
+        learner = small_learner("pulse", "learned", goal=goal)
+        learner.before_update(batch)
+        with torch.no_grad():
+            kls[goal] = [float(learner.loss(b)[1]["kl"]) for b in (batch, moved)]
+    assert kls["reference"][0] == pytest.approx(kls["reference"][1], abs=1e-6)
+    assert abs(kls["mimic"][0] - kls["mimic"][1]) > 1e-3
+
+    torch.manual_seed(0)
+    learner = small_learner("pulse", "learned", goal="mimic")
+    learner.before_update(batch)
+    assert learner.vae.goal_norm is not None and float(learner.vae.goal_norm.count) > 0
+    with torch.no_grad():
+        _, terms = learner.loss(moved)
+        states = torch.as_tensor(moved.states)
+        g = mimic_goal(states[:, :-1], torch.as_tensor(moved.reference[:, 1:]))
+        q, p = learner.vae.encode(body_state.features(states[:, :-1]), g)
+        by_hand = kl_divergence(Normal(q.mean, q.log_std.exp()), Normal(p.mean, p.log_std.exp())).sum(-1).mean()
+    torch.testing.assert_close(terms["kl"], by_hand)
+    with pytest.raises(ValueError, match="vae.goal"):
+        VAEConfig(objective="controlvae", goal="mimic")

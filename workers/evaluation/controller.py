@@ -29,6 +29,7 @@ from workers.models import body_state
 from workers.models.vae import VAEController
 from workers.motion.library import MotionLibrary
 from workers.sim.env import BatchedSim, SimConfig, without_tracking_termination
+from workers.tracking_goal import next_goal
 
 DEFAULT_START_CLIP = "humanoid3d_walk"
 
@@ -193,9 +194,9 @@ def tracking_error(
             if policy is not None:
                 actions = np.asarray(policy(sim))
             else:
-                s = sim_features(sim)
-                ref_next = sim.reference_next_features()
-                posterior, _ = controller.encode(s, torch.from_numpy(ref_next.astype(np.float32)))
+                bs = body_state.pack(sim.kin_state())
+                s = body_state.features(torch.from_numpy(bs))
+                posterior, _ = controller.encode(s, next_goal(controller.goal, sim, bs))
                 actions = controller.act(s, posterior.mean).numpy()
             result = sim.step(actions)
             err = relative_position_error(result.kin.xpos, sim.reference_state().xpos)

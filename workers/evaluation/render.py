@@ -123,8 +123,10 @@ def record_tracking(
     `tracking_error` tracks a segment, for up to `max_seconds` (a one-shot clip: until its last frame)."""
     import torch
 
-    from workers.evaluation.controller import evaluation_mode, fall_start, sim_features
+    from workers.evaluation.controller import evaluation_mode, fall_start
+    from workers.models import body_state
     from workers.sim.env import BatchedSim, without_tracking_termination
+    from workers.tracking_goal import next_goal
 
     config = without_tracking_termination(sim_config)
     c = library.clip_id(clip) if clip is not None else fall_start(library)[0]
@@ -134,9 +136,9 @@ def record_tracking(
     qpos, ref = [sim.kin_state().qpos[0]], [sim.reference_state().qpos[0]]
     with evaluation_mode(controller):
         for _ in range(steps):
-            s = sim_features(sim)
-            ref_next = sim.reference_next_features()
-            posterior, _ = controller.encode(s, torch.from_numpy(ref_next.astype(np.float32)))
+            bs = body_state.pack(sim.kin_state())
+            s = body_state.features(torch.from_numpy(bs))
+            posterior, _ = controller.encode(s, next_goal(controller.goal, sim, bs))
             result = sim.step(controller.act(s, posterior.mean).numpy())
             qpos.append(result.kin.qpos[0])
             ref.append(sim.reference_state().qpos[0])

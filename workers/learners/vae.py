@@ -26,6 +26,7 @@ from workers.losses.vae import PHYSICSVAE_REDUCTIONS, controlvae_loss, physicsva
 from workers.models import body_state
 from workers.models.vae import PRIOR_TYPES, VAEController
 from workers.models.world_model import StateRegressor, WorldModel
+from workers.tracking_goal import GOALS, goal, goal_dim
 
 OBJECTIVES = ("controlvae", "physicsvae", "pulse")
 
@@ -76,6 +77,10 @@ class VAEConfig:
     # How PhysicsVAE's Eq. 1 reduces its squared errors over the action and state dimensions: mean (the
     # authors' nn.MSELoss, the scale of Table 1's α and β and of Fig. 9's α axis) | sum (Eq. 1 as printed).
     physicsvae_reduction: str = "mean"
+    # What the posterior is given as the goal (workers/tracking_goal.py): reference (s̃_{t+1}, the reference's
+    # next state in its own heading frame: ControlVAE's) | mimic (PULSE's s_g-mimic, §4.1: the reference's next
+    # state as offsets from the character, which shows drift). mimic under the pulse objective only.
+    goal: str = "reference"
     # λ on PULSE's latent smoothness L_regu.
     lambda_regu: float = 0.01
     # Action regularisation of Eq. 12: L1 and squared-L2 weights.
@@ -97,6 +102,12 @@ class VAEConfig:
             raise ValueError(
                 f"vae.physicsvae_reduction: unknown reduction {self.physicsvae_reduction!r}; "
                 f"expected one of {PHYSICSVAE_REDUCTIONS}"
+            )
+        if self.goal not in GOALS:
+            raise ValueError(f"vae.goal: unknown goal {self.goal!r}; expected one of {GOALS}")
+        if self.goal != "reference" and self.objective != "pulse":
+            raise ValueError(
+                f"vae.goal: {self.goal!r} is PULSE's goal; the {self.objective} objective takes 'reference'"
             )
         if self.objective == "physicsvae" and self.prior != "standard_normal":
             raise ValueError(
@@ -155,6 +166,8 @@ def build_controller(num_bodies: int, action_dim: int, config: VAEConfig) -> VAE
         posterior_std=c.posterior_std,
         log_std_range=(c.log_std_min, c.log_std_max),
         plain=c.network == "plain",
+        goal=c.goal,
+        goal_dim=None if c.goal == "reference" else goal_dim(c.goal, num_bodies),
     )
 
 
@@ -197,6 +210,8 @@ class VAELearner(Learner):
     def before_update(self, batch: VAEBatch) -> None:
         states = batch.states if batch.norm_states is None else batch.norm_states
         self.vae.state_norm.update(body_state.features(as_tensor(states)))
+        if self.vae.goal_norm is not None:  # the goals the pulse objective will give the posterior
+            self.vae.goal_norm.update(self._goals(as_tensor(batch.states), as_tensor(batch.reference)))
 
     def loss(self, batch: VAEBatch) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         objective = self.config.objective
@@ -252,10 +267,13 @@ class VAELearner(Learner):
             a, expert_actions, predicted_next, s[:, 1:], kl, c.alpha, self.beta, c.physicsvae_reduction
         )
 
+    def _goals(self, states: torch.Tensor, reference: torch.Tensor) -> torch.Tensor:
+        """The goal [N, T, G] of each state states[:, t] toward the reference's next state reference[:, t + 1]."""
+        return goal(self.config.goal, states[:, :-1], reference[:, 1:])
+
     def _pulse(self, states: torch.Tensor, reference: torch.Tensor, teacher_actions: torch.Tensor):
         s = body_state.features(states[:, :-1])
-        goal = body_state.features(reference[:, 1:])
-        q, p = self.vae.encode(s, goal)
+        q, p = self.vae.encode(s, self._goals(states, reference))
         a = self.vae.act(s, q.rsample(self.generator))
         kl = gaussian_kl(q.mean, q.log_std, p.mean, p.log_std)
         return pulse_loss(a, teacher_actions, q.mean, kl, self.config.lambda_regu, self.beta)

@@ -92,10 +92,12 @@ class Posterior(nn.Module):
         posterior_std: float | None = None,
         log_std_range: tuple[float, float] = (-5.0, 0.5),
         plain: bool = False,
+        goal_dim: int | None = None,
     ):
         super().__init__()
         self.kind = kind
         self.plain = plain
+        goal_dim = state_dim if goal_dim is None else goal_dim
         self.latent_dim = latent_dim
         self.log_std_range = log_std_range
         if kind == "conditional":
@@ -104,13 +106,14 @@ class Posterior(nn.Module):
             self.fixed_log_std = None if posterior_std is None else math.log(posterior_std)
         out = latent_dim if self.fixed_log_std is not None else 2 * latent_dim
         if plain:
-            self.net = PlainMLP(state_dim, state_dim, hidden, out, act)
+            self.net = PlainMLP(state_dim, goal_dim, hidden, out, act)
         else:
-            self.net = ConcatMLP(2 * state_dim, state_dim, hidden, out, act)
+            self.net = ConcatMLP(state_dim + goal_dim, goal_dim, hidden, out, act)
 
-    def forward(self, s: torch.Tensor, s_next: torch.Tensor, prior: Gaussian) -> Gaussian:
-        """q(z | s, s') for normalised features [..., D]; a residual on the prior mean."""
-        out = self.net(s, s_next) if self.plain else self.net(torch.cat((s, s_next), dim=-1), s_next)
+    def forward(self, s: torch.Tensor, goal: torch.Tensor, prior: Gaussian) -> Gaussian:
+        """q(z | s, g) for normalised features s [..., D] and goal g [..., G] (s' by default); a residual on the
+        prior mean."""
+        out = self.net(s, goal) if self.plain else self.net(torch.cat((s, goal), dim=-1), goal)
         if self.fixed_log_std is not None:
             mean, log_std = out, out.new_full((), self.fixed_log_std)
         else:
@@ -207,13 +210,18 @@ class VAEController(nn.Module):
         posterior_std: float | None = None,
         log_std_range: tuple[float, float] = (-5.0, 0.5),
         plain: bool = False,
+        goal: str = "reference",
+        goal_dim: int | None = None,
     ):
         super().__init__()
         self.latent_dim = latent_dim
+        self.goal = goal  # what the posterior is given (`workers.tracking_goal`); "reference" is s̃_{t+1}
         self.state_norm = Normalizer(state_dim)
+        # A goal of its own size has its own normaliser; s' shares the state's.
+        self.goal_norm = Normalizer(goal_dim) if goal_dim is not None else None
         self.prior = Prior(prior, state_dim, latent_dim, encoder_hidden, act, sigma_p, log_std_range, plain)
         self.posterior = Posterior(
-            prior, state_dim, latent_dim, encoder_hidden, act, sigma_p, posterior_std, log_std_range, plain
+            prior, state_dim, latent_dim, encoder_hidden, act, sigma_p, posterior_std, log_std_range, plain, goal_dim
         )
         if policy == "moe":
             self.policy = MixtureOfExperts(
@@ -227,11 +235,12 @@ class VAEController(nn.Module):
     def prior_dist(self, s: torch.Tensor) -> Gaussian:
         return self.prior(self.state_norm(s))
 
-    def encode(self, s: torch.Tensor, s_next: torch.Tensor) -> tuple[Gaussian, Gaussian]:
-        """(posterior q(z | s, s'), prior p(z | s))."""
+    def encode(self, s: torch.Tensor, goal: torch.Tensor) -> tuple[Gaussian, Gaussian]:
+        """(posterior q(z | s, g), prior p(z | s)); the goal g is s' unless the controller was built with another."""
         sn = self.state_norm(s)
         p = self.prior(sn)
-        return self.posterior(sn, self.state_norm(s_next), p), p
+        gn = self.state_norm(goal) if self.goal_norm is None else self.goal_norm(goal)
+        return self.posterior(sn, gn, p), p
 
     def act(self, s: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
         """The policy's mean action μ_π(s, z) [..., A]."""

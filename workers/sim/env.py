@@ -70,6 +70,7 @@ from mujoco import batch as mj_batch
 
 from workers.body.character import Character
 from workers.body.features import state_features
+from workers.models.body_state import pack
 from workers.motion.library import MotionLibrary
 from workers.sim.terrain import TerrainConfig, ground_geoms, reset_lift, terrain_model
 from workers.types import KinState
@@ -354,6 +355,12 @@ class BatchedSim:
         observes and the VAE's posterior reads)."""
         ids = slice(None) if env_ids is None else env_ids
         return self.library.features(self.clip_id[ids], self.start_frame[ids] + self.steps[ids] + 1)
+
+    def reference_next_body_states(self, env_ids: np.ndarray | None = None) -> np.ndarray:
+        """The reference's body states [N, B, 13] (float32, `workers.models.body_state.pack`) one control step
+        after each environment's current time (rows `env_ids` only, when given)."""
+        ids = slice(None) if env_ids is None else env_ids
+        return pack(self.library.state(self.clip_id[ids], self.start_frame[ids] + self.steps[ids] + 1))
 
     @property
     def qacc_warmstart(self) -> np.ndarray:
