@@ -26,11 +26,21 @@ from workers.goals import GoalSampler
 from workers.learners.base import Weights
 from workers.learners.task import TaskConfig, task_policy
 from workers.learners.vae import build_controller
-from workers.losses.task import goal_observation, task_terms
+from workers.losses.task import goal_observation, goal_observation_dim, task_terms
 from workers.models import body_state
+from workers.models.actor_critic import HelperLayout
 from workers.policies import Policy
 from workers.recorders import Recorder
 from workers.sim.env import BatchedSim, StepResult
+
+
+def helper_layout(config: TaskConfig, state_dim: int, latent_dim: int, action_dim: int) -> HelperLayout | None:
+    """How PPO splits a task policy with the helper branch (σ > 0) into μ_g(s, g) and H(s, z)
+    (`workers.models.actor_critic.HelperActorCritic`); None without the branch."""
+    if config.sigma <= 0:
+        return None
+    goal_dim = goal_observation_dim(config.task)
+    return HelperLayout(state_dim, goal_dim, latent_dim, action_dim, tuple(config.helper_hidden))
 
 
 def skill_controller(skill: dict[str, Any], num_bodies: int, action_dim: int) -> torch.nn.Module:
@@ -141,27 +151,37 @@ class TaskPPOPolicy(TaskRolloutPolicy):
         super().__init__(num_bodies, action_dim, config, control_hz)
         self.ppo_config = ppo_config
         self.prior_action = True
+        self.helper: HelperLayout | None = None
 
     def configure(self, settings: dict[str, Any]) -> None:
         from workers.learners.ppo import build_actor_critic
-        from workers.losses.task import goal_observation_dim
 
         if "skill" not in settings:
             return
         skill = settings["skill"]
         self.controller = skill_controller(skill, self.num_bodies, self.action_dim)
         self.prior_action = bool(skill.get("prior_action", True))
-        obs_dim = self.controller.state_norm.mean.shape[0] + goal_observation_dim(self.config.task)
-        act_dim = self.controller.latent_dim + (self.action_dim if self.config.sigma > 0 else 0)
-        self.module = build_actor_critic(obs_dim, act_dim, self.ppo_config).eval().requires_grad_(False)
+        state_dim, latent_dim = self.controller.state_norm.mean.shape[0], self.controller.latent_dim
+        self.helper = helper_layout(self.config, state_dim, latent_dim, self.action_dim)
+        if self.helper is None:
+            obs_dim, act_dim = state_dim + goal_observation_dim(self.config.task), latent_dim
+        else:
+            obs_dim, act_dim = self.helper.obs_dim, self.helper.act_dim
+        module = build_actor_critic(obs_dim, act_dim, self.ppo_config, self.helper)
+        self.module = module.eval().requires_grad_(False)
         if self.weights is not None:
             self.module.load_state_dict(self.weights.state)
 
     def observe(self, sim: BatchedSim, bs: np.ndarray) -> np.ndarray:
         self._start_step(sim, bs)
         b = torch.from_numpy(bs)
-        goal = goal_observation(self.config.task, b, torch.from_numpy(self.goals.goals))
-        return torch.cat((body_state.features(b), goal), dim=-1).numpy()
+        s = body_state.features(b)
+        parts = [s, goal_observation(self.config.task, b, torch.from_numpy(self.goals.goals))]
+        if self.helper is not None:  # the latent u_z is added to, for the helper's z = b + u_z
+            parts.append(
+                self.controller.prior_dist(s).mean if self.prior_action else s.new_zeros(len(s), self.helper.latent_dim)
+            )
+        return torch.cat(parts, dim=-1).numpy()
 
     @torch.no_grad()
     def decode(self, bs: np.ndarray, u: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:

@@ -41,7 +41,7 @@ from orchestrator.components.task import TaskActor, skill_model
 from orchestrator.evaluation.tasks import evaluate_task
 from workers.body.features import StateLayout
 from workers.losses.task import goal_observation_dim
-from workers.task_policy import TaskPPOPolicy, TaskRolloutPolicy
+from workers.task_policy import TaskPPOPolicy, TaskRolloutPolicy, helper_layout
 
 
 class SkillTask:
@@ -156,9 +156,13 @@ class TaskPPO(SkillTask, OnPolicy):
     def components(self) -> list[Component]:
         skill = self.skill_payload()
         task = self.cfg.algo.task
-        obs_dim = StateLayout(self.character.num_bodies).dim + goal_observation_dim(task.task)
-        act_dim = skill["config"].latent_dim + (self.character.num_actions if task.sigma > 0 else 0)
-        return [Component("ppo", PPOActor, (self.cfg, obs_dim, act_dim), actor="learner-ppo")]
+        state_dim, latent_dim = StateLayout(self.character.num_bodies).dim, skill["config"].latent_dim
+        helper = helper_layout(task, state_dim, latent_dim, self.character.num_actions)
+        if helper is None:
+            obs_dim, act_dim = state_dim + goal_observation_dim(task.task), latent_dim
+        else:
+            obs_dim, act_dim = helper.obs_dim, helper.act_dim
+        return [Component("ppo", PPOActor, (self.cfg, obs_dim, act_dim, helper), actor="learner-ppo")]
 
     @classmethod
     def make_policy(cls, cfg, character) -> TaskPPOPolicy:

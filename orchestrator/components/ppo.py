@@ -17,6 +17,7 @@ from orchestrator.components.base import LearnerActor
 from orchestrator.schema import Config
 from orchestrator.world import seed_of
 from workers.learners.ppo import PPOLearner, Rollout
+from workers.models.actor_critic import HelperLayout
 from workers.types import Trajectory
 
 
@@ -50,10 +51,10 @@ def rollout_of(trajs: tuple[Trajectory, ...], rewards: list[np.ndarray] | None) 
 class PPOActor(LearnerActor):
     """PPO on the workers' trajectories; rewards from the trajectories' `reward` or given (AMP)."""
 
-    def __init__(self, cfg: Config, obs_dim: int, act_dim: int):
+    def __init__(self, cfg: Config, obs_dim: int, act_dim: int, helper: HelperLayout | None = None):
         super().__init__()
         torch.set_num_threads(cfg.runtime.torch_threads)
-        self.learner = PPOLearner(obs_dim, act_dim, replace(cfg.algo.ppo, seed=seed_of(cfg, 5)))
+        self.learner = PPOLearner(obs_dim, act_dim, replace(cfg.algo.ppo, seed=seed_of(cfg, 5)), helper=helper)
         self.running_return: np.ndarray | None = None  # per environment, across calls
         self.running_length: np.ndarray | None = None
 

@@ -24,7 +24,7 @@ import torch
 
 from workers.learners.base import Learner, all_finite, as_tensor
 from workers.losses.ppo import action_bound_loss, compute_gae, ppo_loss
-from workers.models.actor_critic import ActorCritic
+from workers.models.actor_critic import ActorCritic, HelperActorCritic, HelperLayout
 
 
 @dataclass
@@ -127,9 +127,19 @@ class PPOBatch:
         return self.log_probs.shape[0]
 
 
-def build_actor_critic(obs_dim: int, act_dim: int, config: PPOConfig) -> ActorCritic:
-    """The network a PPOConfig describes (the learner, rollout workers and evaluation build it alike)."""
+def build_actor_critic(
+    obs_dim: int, act_dim: int, config: PPOConfig, helper: HelperLayout | None = None
+) -> ActorCritic:
+    """The network a PPOConfig describes (the learner, rollout workers and evaluation build it alike); with
+    `helper`, a task policy with PhysicsVAE's helper branch H(s, z) (`HelperActorCritic`)."""
     c = config
+    if helper is not None:
+        if (obs_dim, act_dim) != (helper.obs_dim, helper.act_dim):
+            raise ValueError(f"helper layout {helper} does not split observations {obs_dim} and actions {act_dim}")
+        return HelperActorCritic(
+            helper.state_dim, helper.goal_dim, helper.latent_dim, helper.action_dim, c.action_std,
+            c.policy_hidden, c.value_hidden, helper.hidden, c.activation, c.policy_out_scale, c.obs_norm_max_count,
+        )  # fmt: skip
     return ActorCritic(
         obs_dim,
         act_dim,
@@ -149,11 +159,18 @@ _LAST = ("skipped_updates", "lr")
 class PPOLearner(Learner):
     name = "ppo"
 
-    def __init__(self, obs_dim: int, act_dim: int, config: PPOConfig | None = None, device: str = "cpu"):
+    def __init__(
+        self,
+        obs_dim: int,
+        act_dim: int,
+        config: PPOConfig | None = None,
+        device: str = "cpu",
+        helper: HelperLayout | None = None,
+    ):
         cfg = config if config is not None else PPOConfig()
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(cfg.seed)
-            module = build_actor_critic(obs_dim, act_dim, cfg)
+            module = build_actor_critic(obs_dim, act_dim, cfg, helper)
         module.to(device)
         groups = [
             {"params": list(module.policy.parameters()), "lr": cfg.policy_lr},
@@ -173,7 +190,7 @@ class PPOLearner(Learner):
     # The step ----------------------------------------------------------------
     def loss(self, batch: PPOBatch) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         cfg = self.config
-        dist = self.module.dist(batch.obs)
+        dist = self.module.dist(batch.obs, batch.actions)
         total, terms = ppo_loss(
             new_log_prob=dist.log_prob(batch.actions).sum(-1),
             old_log_prob=batch.log_probs,
