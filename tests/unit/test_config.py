@@ -173,7 +173,8 @@ def test_stage_overrides_reach_the_stages_above_and_bad_ones_name_the_need():
 
 def test_the_task_presets_name_their_skill_stages():
     """ablation_prior: a skill stage per prior and seed; ablation_prior_pulse: PULSE Table 3's first and last
-    rows as pulse stages; ablation_sigma: one flat-ground controlvae stage for every sigma and terrain."""
+    rows as pulse stages; ablation_sigma: one flat-ground physicsvae stage (PhysicsVAE §5.5.2) for every sigma
+    and terrain."""
     prior = validate(composed("+experiment=ablation_prior", "algo.task.skill_prior=standard_normal", "seed=2"))
     assert prior.algo.needs == {"skill": "controlvae algo.vae.prior=standard_normal seed=2"}
     first = validate(composed("+experiment=ablation_prior_pulse", "pulse_row=first", "seed=1"))
@@ -186,7 +187,7 @@ def test_the_task_presets_name_their_skill_stages():
         "pulse algo.vae.prior=learned"
     )
     sigma = validate(composed("+experiment=ablation_sigma", "terrain.kind=rough", "algo.task.sigma=0.5"))
-    assert sigma.algo.needs == {"skill": "controlvae"} and sigma.terrain.kind == "rough"
+    assert sigma.algo.needs == {"skill": "physicsvae"} and sigma.terrain.kind == "rough"
     assert sigma.algo.task.trainer == "ppo" and sigma.algo.task.task == "point_goal"
     assert sigma.algo.task.reward == "progress"  # PhysicsVAE Sec. 5.2's point-goal reward
     with pytest.raises(ConfigError, match="algo.task.trainer"):
