@@ -5,7 +5,7 @@ VENV ?= .venv
 BIN := $(VENV)/bin
 TORCH ?= torch==2.13.0
 
-.PHONY: setup samples system-packages run test test-all bench lint
+.PHONY: setup samples system-packages run test test-all bench device-wheels lint
 
 # Debian packages the project uses beside Python: PostgreSQL's server (MLflow's backend store in
 # `make cluster-up`) and the GL libraries of MuJoCo's offscreen renderer (evaluation videos:
@@ -39,6 +39,14 @@ bench:
 	$(BIN)/python -m orchestrator.bench sim --json --out bench-results/sim.json
 	$(BIN)/python -m orchestrator.bench learners --json --out bench-results/learners.json
 	$(BIN)/python -m orchestrator.bench pipeline --json --out bench-results/pipeline.json
+
+# The GPU check's wheels (orchestrator/bench/device.py): MuJoCo and what `import mujoco` needs, for the GPU
+# machine's Python (no network there); `sh scripts/device-check.sh` installs and runs them there.
+DEVICE_PY ?= 3.12
+device-wheels:
+	$(BIN)/pip download --no-deps --only-binary=:all: --implementation cp --python-version $(DEVICE_PY) \
+		--platform manylinux_2_28_x86_64 --platform manylinux2014_x86_64 -d .device/wheels \
+		mujoco==4.0.0 mujoco-core==4.0.0 mujoco-studio==4.0.0 glfw==2.11.0 pyopengl==3.1.10
 
 lint:
 	$(BIN)/ruff check .

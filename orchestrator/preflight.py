@@ -8,6 +8,8 @@ anything is written to the run directory, so that bad input leaves everything al
   plausible (`workers.motion.clip.check_plausible`): the same checks as `python -m orchestrator.clips check`;
 - `tracking.uri` has a scheme MLflow knows (checked at composition too; a sweep point takes its parent's);
 - `runtime.address` answers within `runtime.connect_timeout_s` (runtime=ray);
+- a GPU asked for (`runtime.learner_device=cuda`, `runtime.learner_gpus`) is one this machine has (the
+  local runtime, or a Ray started for the run; a cluster's GPUs are counted when Ray reserves them);
 - with `resume=true`, the last checkpoint in the run directory is complete, a weights file, written by
   this method, and fits this config's networks: its states are loaded into the method's components built
   here (for methods without upstream stages; those that have them are checked when the trainer restores).
@@ -22,6 +24,7 @@ import torch
 
 from orchestrator import checkpoint
 from orchestrator.algos.base import method_class
+from orchestrator.runtime.base import uses_ray
 from orchestrator.schema import Config, ConfigError
 from orchestrator.tracking.uri import tracking_uri_error
 from orchestrator.trainer import LoopState
@@ -40,6 +43,7 @@ def check(cfg: Config) -> None:
         problem = tracking_uri_error(cfg.tracking.uri)
         if problem:
             raise ConfigError(f"tracking.uri: {problem}")
+    learner_devices(cfg)
     character = character_and_clips(cfg)
     if cfg.runtime.address and cfg.runtime._target_.endswith("RayRuntime"):
         from orchestrator.runtime.ray import AddressError, check_address
@@ -51,6 +55,23 @@ def check(cfg: Config) -> None:
     if cfg.resume:
         resume_run(cfg)
         resume_checkpoint(cfg, character)
+
+
+def learner_devices(cfg: Config) -> None:
+    """ConfigError naming the key when the learners are to compute on a GPU that is not there."""
+    r = cfg.runtime
+    here = not uses_ray(r) or not r.address  # the learners run on this machine
+    gpus = torch.cuda.device_count() if here else None
+    seen = f"torch {torch.__version__} sees {gpus} GPU(s), CUDA available: {torch.cuda.is_available()}"
+    if here and r.learner_device == "cuda" and not torch.cuda.is_available():
+        raise ConfigError(f"runtime.learner_device=cuda: no GPU on this machine ({seen})")
+    if here and uses_ray(r) and r.learner_gpus > 0 and not gpus:
+        raise ConfigError(f"runtime.learner_gpus={r.learner_gpus:g}: no GPU on this machine ({seen})")
+    if not here and r.learner_device == "cuda" and r.learner_gpus <= 0:
+        raise ConfigError(
+            "runtime.learner_device=cuda: a learner actor on the cluster at runtime.address sees only the GPUs Ray "
+            "assigns it; set runtime.learner_gpus (e.g. 1)"
+        )
 
 
 def character_and_clips(cfg: Config) -> Character:

@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 
 from orchestrator.tracking.uri import tracking_uri_error
 from workers.body.character import file_problem
+from workers.learners.base import DEVICES as LEARNER_DEVICES
 from workers.learners.discriminator import DiscriminatorConfig
 from workers.learners.ppo import PPOConfig
 from workers.learners.task import TaskConfig
@@ -297,8 +298,16 @@ class RuntimeConfig:
     # when cores are free (one worker, or more cores than actors): `bench rollout --threads 2` measured
     # one worker of 32 environments at 1.15-1.27x raw single-core mj_step on 2 cores, 0.62-0.74x with 1.
     sim_threads: int = 1
+    # Where the learners compute: cpu | cuda (the first GPU the learner's process sees: under Ray, the one
+    # runtime.learner_gpus reserved for its actor; locally, the machine's first) | auto (cuda whenever the
+    # learner's process sees a GPU, else cpu). Weights reach the rollout workers as CPU tensors either way.
+    learner_device: str = "auto"
 
     def __post_init__(self) -> None:
+        if self.learner_device not in LEARNER_DEVICES:
+            raise ConfigError(f"runtime.learner_device must be one of {LEARNER_DEVICES}, got {self.learner_device!r}")
+        if self.learner_gpus < 0:
+            raise ConfigError(f"runtime.learner_gpus must be non-negative, got {self.learner_gpus}")
         if self.rollout_workers < 1:
             raise ConfigError(f"runtime.rollout_workers must be at least 1, got {self.rollout_workers}")
         if self.envs_per_worker < 1:

@@ -28,7 +28,7 @@ from tqdm import tqdm
 from orchestrator import checkpoint
 from orchestrator.algos.base import Method, method_class
 from orchestrator.components.rollout import RolloutActor
-from orchestrator.runtime.base import Resources, Runtime
+from orchestrator.runtime.base import Resources, Runtime, learner_gpus
 from orchestrator.schema import Config
 from orchestrator.tracking.base import RunLogger
 from orchestrator.tracking.model import deployable, log_policy
@@ -69,9 +69,10 @@ class Trainer:
         r = cfg.runtime
         num_workers = r.rollout_workers if self.method.uses_workers else 0
         worker_res = Resources(cpus=r.worker_cpus, max_restarts=r.max_restarts)
-        learner_res = Resources(cpus=r.learner_cpus, gpus=r.learner_gpus, max_restarts=r.max_restarts)
-        replay_res = Resources(cpus=0.5, max_restarts=r.max_restarts)
         components = self.method.components()
+        learners = sum(c.role != "replay" for c in components)
+        learner_res = Resources(cpus=r.learner_cpus, gpus=learner_gpus(r, learners), max_restarts=r.max_restarts)
+        replay_res = Resources(cpus=0.5, max_restarts=r.max_restarts)
         res = [replay_res if c.role == "replay" else learner_res for c in components]
         runtime.reserve(res + [worker_res] * num_workers)
         self.handles: dict[str, Any] = {

@@ -25,6 +25,11 @@ def main(argv: list[str] | None = None) -> int:
     learners.add_argument("--seconds", type=float, default=5.0, help="time budget of each measurement")
     learners.add_argument("--threads", type=int, help="torch.set_num_threads (default: torch's default)")
     learners.add_argument("--seed", type=int, default=0)
+    learners.add_argument("--device", default="cpu", choices=("cpu", "cuda"), help="where the learners compute")
+    device = sub.add_parser("device", help="the GPU check: learners and a paper-size iteration on cuda and cpu")
+    device.add_argument("--devices", default="cuda,cpu", help="comma-separated subset of cuda,cpu")
+    device.add_argument("--seconds", type=float, default=3.0, help="time budget of each learner measurement")
+    device.add_argument("--threads", type=int, help="torch.set_num_threads for the CPU (default: torch's default)")
     pipeline = sub.add_parser("pipeline", help="end-to-end samples/s and updates/s, local against Ray")
     pipeline.add_argument("--algos", default="controlvae,amp,tracker", help="comma-separated methods (conf/algo/)")
     pipeline.add_argument("--scale", default="smoke", help="the scale of every method's sizes (conf/scale/)")
@@ -70,7 +75,7 @@ def main(argv: list[str] | None = None) -> int:
     chaos.add_argument("--outage", type=float, help="seconds the tracking server is down (default: min(180, 20 x M))")
     chaos.add_argument("--run-dir", type=Path, help="where the run and the server's store go (default: outputs/bench/)")
     chaos.add_argument("overrides", nargs="*", help="Hydra overrides of the run, e.g. runtime.rollout_workers=3")
-    for p in (sim, learners, pipeline, rollout, peer, learning, chaos):
+    for p in (sim, learners, device, pipeline, rollout, peer, learning, chaos):
         p.add_argument("--json", action="store_true", help="print JSON instead of the table")
         p.add_argument("--out", type=Path, help="also write the JSON to this file")
     args = parser.parse_args(argv)
@@ -100,10 +105,27 @@ def main(argv: list[str] | None = None) -> int:
             parser.error(str(e))
         if args.seconds <= 0 or (args.threads is not None and args.threads < 1):
             parser.error("--seconds must be positive and --threads at least 1")
-        result = bench_learners.run(
-            names, sizes, args.seconds, args.threads, args.seed, progress=lambda m: print(m, file=sys.stderr)
-        )
+        from workers.learners.base import DeviceError
+
+        try:
+            result = bench_learners.run(
+                names, sizes, args.seconds, args.threads, args.seed, lambda m: print(m, file=sys.stderr), args.device
+            )
+        except DeviceError as e:
+            parser.exit(2, f"error: {e}\n")
         text = bench_learners.format_table(result)
+    elif args.what == "device":
+        from orchestrator.bench import device as bench_device
+        from workers.learners.base import DeviceError
+
+        devices = [d for d in args.devices.split(",") if d]
+        if not devices or not set(devices) <= {"cpu", "cuda"}:
+            parser.error(f"--devices: expected cuda and/or cpu, got {args.devices}")
+        try:
+            result = bench_device.run(devices, args.seconds, args.threads, lambda m: print(m, file=sys.stderr))
+        except DeviceError as e:
+            parser.exit(2, f"error: {e}\n")
+        text = bench_device.format_report(result)
     elif args.what == "pipeline":
         from orchestrator.bench import pipeline as bench_pipeline
 

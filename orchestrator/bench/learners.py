@@ -25,6 +25,13 @@ random actions and observations; timing does not depend on the values), then:
 - achieved GFLOP/s = FLOPs per update × updates/s; share = achieved / peak,
   i.e. the fraction of an update's wall time its matmuls alone take; the rest
   is elementwise work, autograd, the optimiser, Python and dispatch.
+- machine peak: one large float32 GEMM (4096² on a GPU, 2048² on the CPU) timed
+  on the same device and threads; share of machine = achieved / that, how far
+  the update is from what the device can do at its best.
+
+`device` ("cpu" or "cuda") is where the learners compute (`runtime.learner_device`):
+batches start on the CPU, as a replay buffer hands them over, and each update copies
+them (pinned, non-blocking); on a GPU every timing synchronises the device first.
 
 Sizes ("paper" are the configs' defaults; "small" halves the widths or more and
 uses batches of 64 and shorter rollouts):
@@ -50,7 +57,7 @@ import platform
 import statistics
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from typing import Any
 
 import torch
@@ -58,7 +65,7 @@ from torch.utils._python_dispatch import TorchDispatchMode
 from torch.utils._pytree import tree_map
 from torch.utils.flop_counter import flop_registry
 
-from workers.learners.base import Learner
+from workers.learners.base import Learner, resolve_device
 from workers.learners.discriminator import DiscriminatorBatch, DiscriminatorConfig, DiscriminatorLearner
 from workers.learners.ppo import PPOBatch, PPOConfig, PPOLearner
 from workers.learners.task import TaskBatch, TaskConfig, TaskLearner
@@ -71,7 +78,30 @@ LEARNERS = ("world_model", "vae", "discriminator", "ppo", "task")
 SIZES = ("paper", "small")
 ALIASES = {"disc": "discriminator", "wm": "world_model"}
 MIN_REPEATS = 3
+CPU = torch.device("cpu")
 MAX_REPEATS = 200
+
+
+def _sync(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def machine_peak(device: torch.device, seconds: float = 1.0) -> float:
+    """Dense float32 matmul GFLOP/s of this device and thread count: one large square GEMM, median of repeats."""
+    n = 4096 if device.type == "cuda" else 2048
+    gen = torch.Generator().manual_seed(0)
+    a, b = torch.randn(n, n, generator=gen).to(device), torch.randn(n, n, generator=gen).to(device)
+    a @ b  # warm up (cuBLAS handles, thread pool)
+    _sync(device)
+    times: list[float] = []
+    end = time.perf_counter() + seconds
+    while len(times) < 3 or time.perf_counter() < end:
+        t0 = time.perf_counter()
+        a @ b
+        _sync(device)
+        times.append(time.perf_counter() - t0)
+    return 2 * n**3 / statistics.median(times) / 1e9
 
 
 @dataclass
@@ -111,11 +141,12 @@ def _paper(size: str) -> bool:
 
 
 # One builder per learner ----------------------------------------------------------
-def build_world_model(size: str, gen: torch.Generator) -> Case:
+def build_world_model(size: str, gen: torch.Generator, device: torch.device = CPU) -> Case:
     c = WorldModelConfig() if _paper(size) else WorldModelConfig(hidden=(256,) * 4, rollout_steps=4, batch_size=64)
     n, t = c.batch_size, c.rollout_steps
     batch = WorldModelBatch(body_states(gen, n, t + 1), actions(gen, n, t))
-    return Case(WorldModelLearner(NUM_BODIES, ACTION_DIM, DT, c), batch, f"MLP {_dims(c.hidden)}, T_w={t}, N_w={n}")
+    learner = WorldModelLearner(NUM_BODIES, ACTION_DIM, DT, c, device)
+    return Case(learner, batch, f"MLP {_dims(c.hidden)}, T_w={t}, N_w={n}")
 
 
 def _vae_config(size: str) -> VAEConfig:
@@ -130,23 +161,24 @@ def _wm_hidden(size: str) -> tuple[int, ...]:
     return WorldModelConfig().hidden if _paper(size) else (256,) * 4
 
 
-def build_vae(size: str, gen: torch.Generator) -> Case:
+def build_vae(size: str, gen: torch.Generator, device: torch.device = CPU) -> Case:
     c = _vae_config(size)
     n, t = c.batch_size, c.rollout_steps
-    learner = VAELearner(NUM_BODIES, ACTION_DIM, c, world_model=frozen_world_model(_wm_hidden(size), gen))
+    learner = VAELearner(NUM_BODIES, ACTION_DIM, c, frozen_world_model(_wm_hidden(size), gen), device=device)
     batch = VAEBatch(body_states(gen, n, t + 1), reference=body_states(gen, n, t + 1))
     policy = f"MoE {c.num_experts}x({_dims(c.policy_hidden)})" if c.policy == "moe" else f"MLP {_dims(c.policy_hidden)}"
     return Case(learner, batch, f"{policy}, enc {_dims(c.encoder_hidden)}, z {c.latent_dim}, T={t}, N={n}")
 
 
-def build_discriminator(size: str, gen: torch.Generator) -> Case:
+def build_discriminator(size: str, gen: torch.Generator, device: torch.device = CPU) -> Case:
     c = DiscriminatorConfig() if _paper(size) else DiscriminatorConfig(hidden=(256, 128), batch_size=64)
     n, d = c.batch_size, 2 * AMP_OBS_DIM
     batch = DiscriminatorBatch(torch.randn(n, d, generator=gen), torch.randn(n, d, generator=gen))
-    return Case(DiscriminatorLearner(AMP_OBS_DIM, c), batch, f"MLP {_dims(c.hidden)}, {n} data + {n} policy")
+    learner = DiscriminatorLearner(AMP_OBS_DIM, c, device=device)
+    return Case(learner, batch, f"MLP {_dims(c.hidden)}, {n} data + {n} policy")
 
 
-def build_ppo(size: str, gen: torch.Generator) -> Case:
+def build_ppo(size: str, gen: torch.Generator, device: torch.device = CPU) -> Case:
     if _paper(size):
         c = PPOConfig()
     else:
@@ -160,17 +192,20 @@ def build_ppo(size: str, gen: torch.Generator) -> Case:
         returns=torch.randn(n, generator=gen),
         values=torch.randn(n, generator=gen),
     )
-    return Case(PPOLearner(AMP_OBS_DIM, ACTION_DIM, c), batch, f"pi, V {_dims(c.policy_hidden)}, minibatch {n}")
+    # PPO's minibatches are cut from a rollout already on the device (train_on_rollout moves it once).
+    batch = PPOBatch(**{f.name: getattr(batch, f.name).to(device) for f in fields(batch)})
+    learner = PPOLearner(AMP_OBS_DIM, ACTION_DIM, c, device)
+    return Case(learner, batch, f"pi, V {_dims(c.policy_hidden)}, minibatch {n}")
 
 
-def build_task(size: str, gen: torch.Generator) -> Case:
+def build_task(size: str, gen: torch.Generator, device: torch.device = CPU) -> Case:
     if _paper(size):
         c = TaskConfig()
     else:
         c = TaskConfig(hidden=(128, 64), helper_hidden=(64, 64), rollout_steps=8, batch_size=64)
     v = _vae_config(size)
     controller = build_controller(NUM_BODIES, ACTION_DIM, v)
-    learner = TaskLearner(controller, frozen_world_model(_wm_hidden(size), gen), ACTION_DIM, c)
+    learner = TaskLearner(controller, frozen_world_model(_wm_hidden(size), gen), ACTION_DIM, c, device=device)
     n, t = c.batch_size, c.rollout_steps
     if c.task != "heading":  # pragma: no cover - the builder only makes heading batches
         raise ValueError("the task benchmark builds heading goals only")
@@ -180,7 +215,7 @@ def build_task(size: str, gen: torch.Generator) -> Case:
     return Case(learner, batch, f"{c.task}, {_dims(c.hidden)} on VAE z {v.latent_dim}, T={t}, N={n}")
 
 
-BUILDERS: dict[str, Callable[[str, torch.Generator], Case]] = {
+BUILDERS: dict[str, Callable[[str, torch.Generator, torch.device], Case]] = {
     "world_model": build_world_model,
     "vae": build_vae,
     "discriminator": build_discriminator,
@@ -199,15 +234,19 @@ class TensorSpec:
     shape: tuple[int, ...]
     stride: tuple[int, ...]
     dtype: torch.dtype
+    device: torch.device = CPU
 
     def make(self, gen: torch.Generator) -> torch.Tensor:
         """A tensor with this shape and these strides (views, transposes and broadcasts kept) over random values."""
         size = 1 + sum((n - 1) * s for n, s in zip(self.shape, self.stride, strict=True)) if all(self.shape) else 0
-        return torch.randn(size, generator=gen).to(self.dtype).as_strided(self.shape, self.stride)
+        flat = torch.randn(size, generator=gen).to(self.dtype).to(self.device)
+        return flat.as_strided(self.shape, self.stride)
 
 
 def _spec(x: Any) -> Any:
-    return TensorSpec(tuple(x.shape), tuple(x.stride()), x.dtype) if isinstance(x, torch.Tensor) else x
+    if isinstance(x, torch.Tensor):
+        return TensorSpec(tuple(x.shape), tuple(x.stride()), x.dtype, x.device)
+    return x
 
 
 class MatmulRecorder(TorchDispatchMode):
@@ -244,8 +283,9 @@ def _label(op: Any, args: Any) -> str:
 class MatmulReplay:
     """The recorded matmuls of one update, replayed alone and in order on operands made once."""
 
-    def __init__(self, recorder: MatmulRecorder, seed: int = 0):
+    def __init__(self, recorder: MatmulRecorder, seed: int = 0, device: torch.device = CPU):
         gen = torch.Generator().manual_seed(seed)
+        self.sync = (lambda: _sync(device)) if device.type == "cuda" else (lambda: None)
 
         def make(x: Any) -> Any:
             return x.make(gen) if isinstance(x, TensorSpec) else x
@@ -260,12 +300,13 @@ class MatmulReplay:
 
     def run(self) -> float:
         """One pass over the update's matmuls; the sum of the calls' times."""
-        calls, busy, clock = self.calls, self.busy, time.perf_counter
+        calls, busy, clock, sync = self.calls, self.busy, time.perf_counter, self.sync
         total = 0.0
         for key in self.order:
             op, args, kwargs = calls[key]
             t0 = clock()
             op(*args, **kwargs)
+            sync()
             dt = clock() - t0
             busy[key] += dt
             total += dt
@@ -283,25 +324,29 @@ class MatmulReplay:
 
 
 # The measurement -------------------------------------------------------------------
-def measure(case: Case, seconds: float) -> dict[str, Any]:
+def measure(case: Case, seconds: float, machine_gflops: float = float("nan")) -> dict[str, Any]:
     """FLOPs, updates/s, achieved and peak matmul rates of one learner at one size."""
     learner, batch = case.learner, case.batch
+    device = learner.device
     recorder = MatmulRecorder()
     t0 = time.perf_counter()
     with recorder:
         learner.update(batch)
+    _sync(device)
     first = time.perf_counter() - t0
     flops = recorder.flops
-    replay = MatmulReplay(recorder)
-    if first < 0.25 * seconds:  # one more warm-up round when it is cheap
+    replay = MatmulReplay(recorder, device=device)
+    if first < 0.25 * seconds or device.type == "cuda":  # one more warm-up round when it is cheap
         learner.update(batch)
         replay.run()
     updates: list[float] = []
     passes: list[float] = []
     end = time.perf_counter() + seconds
     while len(updates) < MIN_REPEATS or (time.perf_counter() < end and len(updates) < MAX_REPEATS):
+        _sync(device)
         t0 = time.perf_counter()
         learner.update(batch)
+        _sync(device)
         updates.append(time.perf_counter() - t0)
         passes.append(replay.run())
     median, matmul_s = statistics.median(updates), statistics.median(passes)
@@ -318,6 +363,8 @@ def measure(case: Case, seconds: float) -> dict[str, Any]:
         "achieved_gflops_per_s": achieved / 1e9,
         "matmul_peak_gflops_per_s": peak / 1e9,
         "share_of_peak": achieved / peak if flops else float("nan"),
+        "machine_peak_gflops_per_s": machine_gflops,
+        "share_of_machine_peak": achieved / 1e9 / machine_gflops if flops else float("nan"),
         "matmul_s_median": matmul_s,
         "recorded_update_s": first,
         "matmul_calls_per_update": len(recorder.order),
@@ -344,7 +391,10 @@ def run(
     threads: int | None = None,
     seed: int = 0,
     progress: Callable[[str], None] | None = None,
+    device: str = "cpu",
 ) -> dict[str, Any]:
+    """Every learner at every size on `device` ("cpu" or "cuda": a DeviceError when there is no GPU)."""
+    dev = resolve_device(device, "--device")
     learners = list(learners or LEARNERS)
     sizes = list(sizes or SIZES)
     previous = torch.get_num_threads()
@@ -353,6 +403,9 @@ def run(
     wall0 = time.perf_counter()
     results = []
     try:
+        if progress:
+            progress(f"machine peak on {dev} ...")
+        peak = machine_peak(dev)
         for name in learners:
             for size in sizes:
                 if progress:
@@ -360,8 +413,8 @@ def run(
                 gen = torch.Generator().manual_seed(seed)
                 with torch.random.fork_rng(devices=[]):
                     torch.manual_seed(seed)
-                    case = BUILDERS[name](size, gen)
-                    results.append({"learner": name, "size": size, **measure(case, seconds)})
+                    case = BUILDERS[name](size, gen, dev)
+                    results.append({"learner": name, "size": size, **measure(case, seconds, peak)})
         used = torch.get_num_threads()
     finally:
         torch.set_num_threads(previous)
@@ -369,6 +422,8 @@ def run(
         "benchmark": "learners",
         "machine": {"host": platform.node(), "cpus": os.cpu_count(), "python": platform.python_version()},
         "versions": {"torch": torch.__version__},
+        "device": str(dev) + (f" ({torch.cuda.get_device_name(dev)})" if dev.type == "cuda" else ""),
+        "machine_peak_gflops_per_s": peak,
         "threads": used,
         "seconds_per_measurement": seconds,
         "wall_s": time.perf_counter() - wall0,
@@ -378,19 +433,22 @@ def run(
 
 def format_table(r: dict[str, Any]) -> str:
     lines = [
-        f"learner benchmark: {r['threads']} torch thread(s), about {r['seconds_per_measurement']:g} s per "
-        f"measurement, {r['wall_s']:.0f} s in all",
+        f"learner benchmark on {r['device']}: {r['threads']} torch thread(s), about "
+        f"{r['seconds_per_measurement']:g} s per measurement, {r['wall_s']:.0f} s in all; machine peak "
+        f"{r['machine_peak_gflops_per_s']:.0f} GFLOP/s (one large float32 GEMM)",
         f"{'learner':<14}{'size':<7}{'updates/s':>10}{'reps':>6}{'GFLOP/upd':>11}{'GFLOP/s':>9}"
-        f"{'mm peak GFLOP/s':>17}{'share':>7}  sizes",
+        f"{'mm peak GFLOP/s':>17}{'share':>7}{'of machine':>11}  sizes",
     ]
     for x in r["results"]:
         lines.append(
             f"{x['learner']:<14}{x['size']:<7}{x['updates_per_s']:>10.2f}{x['repeats']:>6}"
             f"{x['gflop_per_update']:>11.3f}{x['achieved_gflops_per_s']:>9.1f}"
-            f"{x['matmul_peak_gflops_per_s']:>17.1f}{x['share_of_peak']:>7.2f}  {x['description']}"
+            f"{x['matmul_peak_gflops_per_s']:>17.1f}{x['share_of_peak']:>7.2f}{x['share_of_machine_peak']:>11.3f}"
+            f"  {x['description']}"
         )
     lines.append(
         "GFLOP/upd: matmul FLOPs of one update, forward and backward (torch.utils.flop_counter's formulas); "
-        "mm peak: the same matmuls replayed alone; share = achieved / peak; reps: timed rounds (medians)."
+        "mm peak: the same matmuls replayed alone; share = achieved / mm peak; of machine = achieved / machine "
+        "peak; reps: timed rounds (medians)."
     )
     return "\n".join(lines)

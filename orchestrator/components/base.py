@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from workers.learners.base import Learner, Weights
+from workers.learners.base import Learner, Weights, resolve_device
 
 
 def mean_metrics(metrics: list[dict[str, float]]) -> dict[str, float]:
@@ -31,6 +31,12 @@ def mean_metrics(metrics: list[dict[str, float]]) -> dict[str, float]:
 def incarnation() -> str:
     """Tells one life of a component from the next: a restarted Ray actor is a new process."""
     return f"{os.getpid()}-{time.time_ns()}"
+
+
+def learner_device(cfg: Any) -> Any:
+    """The torch device this process's learner computes on (`runtime.learner_device`, resolved here: a Ray
+    actor sees the GPUs Ray assigned it)."""
+    return resolve_device(cfg.runtime.learner_device)
 
 
 class LearnerActor:

@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from orchestrator.components.base import LearnerActor
+from orchestrator.components.base import LearnerActor, learner_device
 from orchestrator.schema import Config
 from orchestrator.upstream import Upstream, layer_state, load_demos
 from orchestrator.world import seed_of
@@ -89,7 +89,9 @@ class SimulationLayerActor(OfflineActor):
         self.window = cfg.algo.world_model.rollout_steps
         super().__init__(cfg, demos, 2)
         wm = cfg.algo.world_model
-        self.learner = WorldModelLearner(num_bodies, action_dim, 1.0 / cfg.character.control_hz, wm)
+        self.learner = WorldModelLearner(
+            num_bodies, action_dim, 1.0 / cfg.character.control_hz, wm, learner_device(cfg)
+        )
         self.base_lr = wm.lr
 
     @property
@@ -107,11 +109,11 @@ class SimulationLayerActor(OfflineActor):
         states, actions = self.demos.windows(self.heldout(), self.window)
         if self.cfg.algo.world_model.kind == "regress":  # features only: no body positions to compare
             model = self.learner.model.eval()
-            s, a = torch.from_numpy(states), torch.from_numpy(actions)
+            s, a = self.learner.tensor(states), self.learner.tensor(actions)
             mse = ((model.next_features(s[:, :-1], a) - body_state.features(s[:, 1:])) ** 2).mean()
             return {"heldout_feature_mse_1": float(mse)}
-        predicted = self.learner.predict(torch.from_numpy(states[:, 0]), torch.from_numpy(actions))
-        err = (predicted[..., :3] - torch.from_numpy(states[:, 1:, :, :3])).norm(dim=-1).mean(-1)  # [N, T]
+        predicted = self.learner.predict(states[:, 0], actions)
+        err = (predicted[..., :3] - self.learner.tensor(states[:, 1:, :, :3])).norm(dim=-1).mean(-1)  # [N, T]
         return {"heldout_pos_error_1": float(err[:, 0].mean()), "heldout_pos_error_T": float(err[:, -1].mean())}
 
 
@@ -134,7 +136,7 @@ class PhysicsVAEActor(OfflineActor):
         self.world_model = build_world_model(num_bodies, action_dim, layer_config, 1.0 / cfg.character.control_hz)
         self.world_model.load_state_dict(layer_weights if isinstance(layer_weights, dict) else layer_state(layer))
         self.learner = VAELearner(
-            num_bodies, action_dim, cfg.algo.vae, world_model=self.world_model, seed=seed_of(cfg, 4)
+            num_bodies, action_dim, cfg.algo.vae, self.world_model, seed_of(cfg, 4), learner_device(cfg)
         )
         self.base_lr = cfg.algo.vae.lr
 
@@ -153,17 +155,18 @@ class PhysicsVAEActor(OfflineActor):
         in features (what Eq. 1's α term weighs) and in body positions (m). Measured for every α, 0 included."""
         vae = self.learner.vae.eval()
         states, actions = self.demos.windows(self.heldout(), 1)
-        s = body_state.features(torch.from_numpy(states))
+        tensor = self.learner.tensor
+        s = body_state.features(tensor(states))
         q, _ = vae.encode(s[:, 0], s[:, 1])
         a = vae.act(s[:, 0], q.mean)
-        start = torch.from_numpy(states[:, 0])
+        start = tensor(states[:, 0])
         out = {
-            "heldout_action_error": float(((a - torch.from_numpy(actions[:, 0])) ** 2).sum(-1).mean()),
+            "heldout_action_error": float(((a - tensor(actions[:, 0])) ** 2).sum(-1).mean()),
             "heldout_sim_error": float(((self.world_model.next_features(start, a) - s[:, 1]) ** 2).sum(-1).mean()),
         }
         if isinstance(self.world_model, WorldModel):  # a regress layer predicts features, not body positions
             nxt = self.world_model(start, a)
-            pos = (nxt[..., :3] - torch.from_numpy(states[:, 1, :, :3])).norm(dim=-1).mean(-1)
+            pos = (nxt[..., :3] - tensor(states[:, 1, :, :3])).norm(dim=-1).mean(-1)
             out["heldout_next_pos_error"] = float(pos.mean())
         return out
 

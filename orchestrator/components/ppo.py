@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from orchestrator.components.base import LearnerActor
+from orchestrator.components.base import LearnerActor, learner_device
 from orchestrator.schema import Config
 from orchestrator.world import seed_of
 from workers.learners.ppo import PPOLearner, Rollout
@@ -54,7 +54,8 @@ class PPOActor(LearnerActor):
     def __init__(self, cfg: Config, obs_dim: int, act_dim: int, helper: HelperLayout | None = None):
         super().__init__()
         torch.set_num_threads(cfg.runtime.torch_threads)
-        self.learner = PPOLearner(obs_dim, act_dim, replace(cfg.algo.ppo, seed=seed_of(cfg, 5)), helper=helper)
+        ppo = replace(cfg.algo.ppo, seed=seed_of(cfg, 5))
+        self.learner = PPOLearner(obs_dim, act_dim, ppo, learner_device(cfg), helper)
         self.running_return: np.ndarray | None = None  # per environment, across calls
         self.running_length: np.ndarray | None = None
 

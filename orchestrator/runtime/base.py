@@ -54,3 +54,19 @@ class Runtime:
 
     def shutdown(self) -> None:
         pass
+
+
+def uses_ray(runtime_cfg: Any) -> bool:
+    return str(runtime_cfg._target_).endswith("RayRuntime")
+
+
+def learner_gpus(runtime_cfg: Any, learners: int) -> float:
+    """The GPUs each learner actor reserves under Ray: `runtime.learner_gpus` when it is set; with
+    `learner_device` auto or cuda, a Ray started for the run (no `address`) and a GPU on this machine, an
+    equal share of one GPU per learner (all learners on the first GPU); else none."""
+    r = runtime_cfg
+    if not uses_ray(r) or r.learner_gpus > 0 or r.learner_device == "cpu" or r.address or learners < 1:
+        return float(r.learner_gpus) if uses_ray(r) else 0.0
+    import torch
+
+    return round(1.0 / learners, 4) if torch.cuda.device_count() > 0 else 0.0

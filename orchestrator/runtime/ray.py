@@ -19,6 +19,7 @@ from ray.util.placement_group import placement_group, remove_placement_group
 from ray.util.scheduling_strategies import PlacementGroupSchedulingStrategy
 
 from orchestrator.runtime.base import Resources, Runtime
+from orchestrator.schema import ConfigError
 
 log = logging.getLogger(__name__)
 
@@ -114,6 +115,12 @@ class RayRuntime(Runtime):
             else:
                 check_address(self._init_kwargs["address"], self.connect_timeout_s)
             self.context = ray.init(**self._init_kwargs)
+        gpus = sum(b.gpus for b in bundles)
+        have = ray.cluster_resources().get("GPU", 0.0)
+        if gpus > have:  # Ray would wait for the placement group without end
+            raise ConfigError(
+                f"runtime.learner_gpus: the learners ask for {gpus:g} GPU(s) in all, the Ray cluster has {have:g}"
+            )
         specs = [{"CPU": b.cpus, **({"GPU": b.gpus} if b.gpus else {})} for b in bundles]
         self.group = placement_group(specs, strategy=self.placement)
         ready, _ = ray.wait([self.group.ready()], timeout=self.placement_timeout_s)

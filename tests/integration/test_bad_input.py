@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 import pybullet_data
 import pytest
+import torch
 from hydra import compose, initialize_config_dir
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import open_dict
@@ -345,3 +346,19 @@ def test_unreadable_run_file_is_named_on_resume(tmp_path, capsys):
     assert line.endswith('not a run file ({"run_id": "<MLflow run id>"}); resume=true reads it')
     assert (run_dir / "run.json").read_text() == '{"run_id": '
     assert sorted(p.name for p in run_dir.iterdir()) == ["run.json"]
+
+
+# h. A device that is not there -----------------------------------------------------------------------
+@pytest.mark.skipif(torch.cuda.is_available(), reason="this machine has a GPU")
+@pytest.mark.parametrize(
+    ("overrides", "key"),
+    [
+        (("runtime.learner_device=cuda",), "runtime.learner_device=cuda"),
+        (("runtime=ray", "runtime.learner_gpus=1"), "runtime.learner_gpus=1"),
+    ],
+)
+def test_a_gpu_that_is_not_there_is_refused_before_anything_starts(tmp_path, capsys, overrides, key):
+    code, err = run_main(tmp_path, capsys, "motion=walk", *overrides)
+    line = assert_refused(tmp_path, code, err, key, "no GPU on this machine")
+    assert line.startswith("config error: ")
+    assert not (tmp_path / "run").exists()  # nothing written, no Ray started, no run in a store

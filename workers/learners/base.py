@@ -27,6 +27,28 @@ class NonFiniteWeightsError(RuntimeError):
     pass
 
 
+class DeviceError(RuntimeError):
+    """A learner was asked for a device this process does not have."""
+
+
+DEVICES = ("auto", "cpu", "cuda")
+
+
+def resolve_device(setting: str, key: str = "runtime.learner_device") -> torch.device:
+    """The device a learner computes on, from its setting: "cpu"; "cuda", the first GPU this process sees (under
+    Ray, the one assigned to the actor: Ray sets CUDA_VISIBLE_DEVICES), refused when it sees none; "auto",
+    that GPU when there is one, else the CPU."""
+    if setting not in DEVICES:
+        raise ValueError(f"{key}: unknown device {setting!r}; expected one of {DEVICES}")
+    if setting == "cpu":
+        return torch.device("cpu")
+    if torch.cuda.is_available():
+        return torch.device("cuda", torch.cuda.current_device())
+    if setting == "cuda":
+        raise DeviceError(f"{key}=cuda: this process sees no GPU (torch {torch.__version__}, CUDA available: False)")
+    return torch.device("cpu")
+
+
 @dataclass(frozen=True)
 class Weights:
     """A snapshot of a learner's module state, tagged with the update count that made it."""
@@ -81,10 +103,20 @@ def all_finite(tensors: Iterable[torch.Tensor]) -> bool:
     return all(bool(torch.isfinite(t).all()) for t in tensors if t.is_floating_point())
 
 
-def as_tensor(x: Any, dtype: torch.dtype = torch.float32) -> torch.Tensor:
-    if isinstance(x, torch.Tensor):
-        return x.to(dtype) if x.is_floating_point() else x
-    return torch.as_tensor(x, dtype=dtype)
+def as_tensor(x: Any, dtype: torch.dtype = torch.float32, device: torch.device | str | None = None) -> torch.Tensor:
+    """x as a tensor (floating point as `dtype`) on `device` (where it is, when None). A CPU batch bound for a
+    GPU goes through pinned memory with a non-blocking copy."""
+    t = (
+        (x.to(dtype) if x.is_floating_point() else x)
+        if isinstance(x, torch.Tensor)
+        else torch.as_tensor(x, dtype=dtype)
+    )
+    if device is None:
+        return t
+    device = torch.device(device)
+    if device.type == "cuda" and t.device.type == "cpu":
+        return t.pin_memory().to(device, non_blocking=True)
+    return t.to(device)
 
 
 class Learner:
@@ -95,8 +127,17 @@ class Learner:
 
     name = "learner"
 
-    def __init__(self, module: nn.Module, optimizer: torch.optim.Optimizer, grad_clip: float | None = None):
-        self.module = module
+    def __init__(
+        self,
+        module: nn.Module,
+        optimizer: torch.optim.Optimizer,
+        grad_clip: float | None = None,
+        device: torch.device | str = "cpu",
+    ):
+        """`device`: where the module, its optimiser state and every batch live (`resolve_device`); weights are
+        published and checkpoints written as CPU tensors all the same, and load on either device."""
+        self.device = torch.device(device)
+        self.module = module.to(self.device)
         self.optimizer = optimizer
         self.grad_clip = grad_clip
         self.version = 0
@@ -163,11 +204,16 @@ class Learner:
         self.version = weights.version
 
     # Checkpoints -------------------------------------------------------------
+    def tensor(self, x: Any, dtype: torch.dtype = torch.float32) -> torch.Tensor:
+        """A batch's array as a tensor on this learner's device."""
+        return as_tensor(x, dtype, self.device)
+
     def state_dict(self) -> dict[str, Any]:
-        """Everything needed to resume: module, optimiser, counters. Tensors and plain types only."""
+        """Everything needed to resume: module, optimiser, counters. CPU tensors and plain types only, so that
+        a checkpoint from one device loads on another."""
         return {
-            "module": self.module.state_dict(),
-            "optimizer": self.optimizer.state_dict(),
+            "module": _to_cpu(self.module.state_dict()),
+            "optimizer": _to_cpu(self.optimizer.state_dict()),
             "version": self.version,
             "skipped_updates": self.skipped_updates,
         }
@@ -178,6 +224,17 @@ class Learner:
         self.version = int(state["version"])
         self.skipped_updates = int(state["skipped_updates"])
         self._published = None
+
+
+def _to_cpu(x: Any) -> Any:
+    """Every tensor in a nested dict or list moved to the CPU (the others as they are)."""
+    if isinstance(x, torch.Tensor):
+        return x.detach().cpu()
+    if isinstance(x, dict):
+        return {k: _to_cpu(v) for k, v in x.items()}
+    if isinstance(x, list | tuple):
+        return type(x)(_to_cpu(v) for v in x)
+    return x
 
 
 OPTIMIZERS = {"adam": torch.optim.Adam, "radam": torch.optim.RAdam, "adamw": torch.optim.AdamW, "sgd": torch.optim.SGD}

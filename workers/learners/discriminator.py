@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from workers.learners.base import Learner, all_finite, as_tensor
+from workers.learners.base import Learner, all_finite
 from workers.losses.discriminator import (
     check_loss_type,
     discriminator_loss,
@@ -153,19 +153,18 @@ class DiscriminatorLearner(Learner):
         device: str | torch.device = "cpu",
     ):
         self.config = config = config or DiscriminatorConfig()
-        self.device = torch.device(device)
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(seed)
             module = Discriminator(
                 obs_dim, config.hidden, config.activation, config.num_skills, config.skill_embed_dim
-            ).to(self.device)
+            ).to(device)
         if config.optimizer == "sgd":
             optimizer = torch.optim.SGD(
                 module.parameters(), lr=config.lr, momentum=config.momentum, weight_decay=config.weight_decay
             )
         else:
             optimizer = torch.optim.Adam(module.parameters(), lr=config.lr, weight_decay=config.weight_decay)
-        super().__init__(module, optimizer, config.grad_clip)
+        super().__init__(module, optimizer, config.grad_clip, device)
         self.replay = TransitionReplay(config.replay_capacity, 2 * obs_dim, config.num_skills > 0)
         self.rng = np.random.default_rng(seed)
 
@@ -283,7 +282,7 @@ class DiscriminatorLearner(Learner):
         return self._skill(batch.data_skill), self._skill(batch.policy_skill)
 
     def _obs(self, x: Any) -> torch.Tensor:
-        return as_tensor(x).to(self.device)
+        return self.tensor(x)
 
     def _skill(self, x: Any) -> torch.Tensor | None:
         return None if x is None else torch.as_tensor(x, dtype=torch.long, device=self.device)

@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from workers.learners.base import Learner, all_finite, as_tensor
+from workers.learners.base import Learner, all_finite
 from workers.losses.ppo import action_bound_loss, compute_gae, ppo_loss
 from workers.models.actor_critic import ActorCritic, HelperActorCritic, HelperLayout
 
@@ -171,7 +171,6 @@ class PPOLearner(Learner):
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(cfg.seed)
             module = build_actor_critic(obs_dim, act_dim, cfg, helper)
-        module.to(device)
         groups = [
             {"params": list(module.policy.parameters()), "lr": cfg.policy_lr},
             {"params": list(module.critic.parameters()), "lr": cfg.value_lr},
@@ -180,10 +179,9 @@ class PPOLearner(Learner):
             optimizer: torch.optim.Optimizer = torch.optim.SGD(groups, lr=cfg.policy_lr, momentum=cfg.momentum)
         else:
             optimizer = torch.optim.Adam(groups, lr=cfg.policy_lr)
-        super().__init__(module, optimizer, cfg.grad_clip)
+        super().__init__(module, optimizer, cfg.grad_clip, device)
         self.module: ActorCritic
         self.config = cfg
-        self.device = torch.device(device)
         self._shuffle_rng = torch.Generator().manual_seed(cfg.seed)
         self._noise_rng = torch.Generator(device=self.device).manual_seed(cfg.seed + 1)
 
@@ -295,7 +293,10 @@ class PPOLearner(Learner):
     def load_state_dict(self, state: dict[str, Any]) -> None:
         super().load_state_dict(state)
         self._shuffle_rng.set_state(state["shuffle_rng"])
-        self._noise_rng.set_state(state["noise_rng"])
+        try:
+            self._noise_rng.set_state(state["noise_rng"])
+        except RuntimeError:  # saved on another device's generator: acting noise starts from this one's seed
+            pass
 
     def _tensor(self, x: Any) -> torch.Tensor | None:
-        return None if x is None else as_tensor(x).to(self.device)
+        return None if x is None else self.tensor(x)

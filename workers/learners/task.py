@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from workers.learners.base import Learner, Weights, as_tensor, make_optimizer
+from workers.learners.base import Learner, Weights, make_optimizer
 from workers.losses.task import DEFAULT_WEIGHTS, GOAL_DIMS, goal_observation, goal_observation_dim, task_loss
 from workers.models import body_state
 from workers.models.task import TaskPolicy
@@ -106,16 +106,18 @@ class TaskLearner(Learner):
         action_dim: int,
         config: TaskConfig | None = None,
         prior_action: bool = True,
+        device: torch.device | str = "cpu",
     ):
         self.config = c = config or TaskConfig()
-        self.policy = task_policy(controller, action_dim, c, prior_action)
-        super().__init__(self.policy, make_optimizer(c.optimizer, self.policy.parameters(), c.lr), c.grad_clip)
+        self.policy = task_policy(controller, action_dim, c, prior_action).to(device)
+        optimizer = make_optimizer(c.optimizer, self.policy.parameters(), c.lr)
+        super().__init__(self.policy, optimizer, c.grad_clip, device)
         if not isinstance(world_model, WorldModel):
             raise ValueError(
                 "the model-based task trainer rolls out an integrating world model (world_model.kind=integrate)"
             )
-        self.controller = controller.requires_grad_(False).eval()
-        self.world_model = world_model.requires_grad_(False).eval()
+        self.controller = controller.to(self.device).requires_grad_(False).eval()
+        self.world_model = world_model.to(self.device).requires_grad_(False).eval()
 
     def set_frozen_weights(self, controller: Weights | None = None, world_model: Weights | None = None) -> None:
         if controller is not None:
@@ -127,17 +129,17 @@ class TaskLearner(Learner):
         c = self.config
         for group in self.optimizer.param_groups:
             group["lr"] = c.lr * max(c.lr_decay**self.version, c.lr_floor)
-        self.policy.state_norm.update(body_state.features(as_tensor(batch.states)))
+        self.policy.state_norm.update(body_state.features(self.tensor(batch.states)))
 
     def loss(self, batch: TaskBatch) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         c = self.config
-        bs, goals = as_tensor(batch.states), as_tensor(batch.goals)
+        bs, goals = self.tensor(batch.states), self.tensor(batch.goals)
         totals, reg = [], []
         sums: dict[str, torch.Tensor] = {}
         for t in range(goals.shape[1]):
             goal = goals[:, t]
             s = body_state.features(bs)
-            eps = torch.randn(bs.shape[0], self.controller.latent_dim) if c.latent_noise else None
+            eps = torch.randn(bs.shape[0], self.controller.latent_dim, device=bs.device) if c.latent_noise else None
             action, mu_g = self.policy(self.controller, s, goal_observation(c.task, bs, goal), eps)
             bs = self.world_model(bs, action)
             total, terms = task_loss(c.task, bs, goal, c.weights, c.fall_height)

@@ -20,7 +20,7 @@ import numpy as np
 import torch
 
 from workers.body.features import StateLayout
-from workers.learners.base import Learner, Schedule, Weights, as_tensor, make_optimizer
+from workers.learners.base import Learner, Schedule, Weights, make_optimizer
 from workers.losses.kl import gaussian_kl
 from workers.losses.vae import PHYSICSVAE_REDUCTIONS, controlvae_loss, physicsvae_loss, pulse_loss
 from workers.models import body_state
@@ -181,10 +181,12 @@ class VAELearner(Learner):
         config: VAEConfig | None = None,
         world_model: WorldModel | StateRegressor | None = None,
         seed: int = 0,
+        device: torch.device | str = "cpu",
     ):
         self.config = c = config or VAEConfig()
-        self.vae = build_controller(num_bodies, action_dim, c)
-        super().__init__(self.vae, make_optimizer(c.optimizer, self.vae.parameters(), c.lr), c.grad_clip)
+        self.vae = build_controller(num_bodies, action_dim, c).to(device)
+        optimizer = make_optimizer(c.optimizer, self.vae.parameters(), c.lr)
+        super().__init__(self.vae, optimizer, c.grad_clip, device)
         needs_model = c.objective == "controlvae" or (c.objective == "physicsvae" and c.alpha > 0)
         if needs_model and world_model is None:
             raise ValueError(f"the {c.objective} objective needs a world model")
@@ -194,10 +196,10 @@ class VAELearner(Learner):
             )
         self.world_model = world_model
         if world_model is not None:
-            world_model.requires_grad_(False)
+            world_model.to(self.device).requires_grad_(False)
             world_model.eval()
-        self.state_weights = state_weight_vector(num_bodies, c.state_weights)
-        self.generator = torch.Generator().manual_seed(seed)
+        self.state_weights = state_weight_vector(num_bodies, c.state_weights).to(self.device)
+        self.generator = torch.Generator(device=self.device).manual_seed(seed)
 
     def set_world_model_weights(self, weights: Weights) -> None:
         """Load the world-model learner's published weights into the frozen copy."""
@@ -209,24 +211,24 @@ class VAELearner(Learner):
 
     def before_update(self, batch: VAEBatch) -> None:
         states = batch.states if batch.norm_states is None else batch.norm_states
-        self.vae.state_norm.update(body_state.features(as_tensor(states)))
+        self.vae.state_norm.update(body_state.features(self.tensor(states)))
         if self.vae.goal_norm is not None:  # the goals the pulse objective will give the posterior
-            self.vae.goal_norm.update(self._goals(as_tensor(batch.states), as_tensor(batch.reference)))
+            self.vae.goal_norm.update(self._goals(self.tensor(batch.states), self.tensor(batch.reference)))
 
     def loss(self, batch: VAEBatch) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         objective = self.config.objective
-        states = as_tensor(batch.states)
+        states = self.tensor(batch.states)
         if objective == "controlvae":
-            total, terms = self._controlvae(states, as_tensor(batch.reference))
+            total, terms = self._controlvae(states, self.tensor(batch.reference))
         elif objective == "physicsvae":
-            total, terms = self._physicsvae(states, as_tensor(batch.actions))
+            total, terms = self._physicsvae(states, self.tensor(batch.actions))
         else:
-            total, terms = self._pulse(states, as_tensor(batch.reference), as_tensor(batch.actions))
+            total, terms = self._pulse(states, self.tensor(batch.reference), self.tensor(batch.actions))
         terms["beta"] = torch.tensor(self.beta)
         return total, terms
 
     def _noise(self, like: torch.Tensor) -> torch.Tensor:
-        return torch.randn(like.shape, generator=self.generator) * self.config.action_noise
+        return torch.randn(like.shape, generator=self.generator, device=like.device) * self.config.action_noise
 
     def _controlvae(self, states: torch.Tensor, reference: torch.Tensor):
         c = self.config

@@ -6,7 +6,7 @@ from dataclasses import dataclass, field
 
 import torch
 
-from workers.learners.base import Learner, as_tensor, make_optimizer
+from workers.learners.base import Learner, make_optimizer
 from workers.losses.world_model import regression_loss, world_model_loss
 from workers.models import body_state
 from workers.models.world_model import StateRegressor, WorldModel
@@ -70,14 +70,22 @@ class WorldModelBatch:
 class WorldModelLearner(Learner):
     name = "world_model"
 
-    def __init__(self, num_bodies: int, action_dim: int, dt: float, config: WorldModelConfig | None = None):
+    def __init__(
+        self,
+        num_bodies: int,
+        action_dim: int,
+        dt: float,
+        config: WorldModelConfig | None = None,
+        device: torch.device | str = "cpu",
+    ):
         self.config = config or WorldModelConfig()
         c = self.config
-        self.model = build_world_model(num_bodies, action_dim, c, dt)
-        super().__init__(self.model, make_optimizer(c.optimizer, self.model.parameters(), c.lr), c.grad_clip)
+        self.model = build_world_model(num_bodies, action_dim, c, dt).to(device)
+        optimizer = make_optimizer(c.optimizer, self.model.parameters(), c.lr)
+        super().__init__(self.model, optimizer, c.grad_clip, device)
 
     def _tensors(self, batch: WorldModelBatch) -> tuple[torch.Tensor, torch.Tensor]:
-        states, actions = as_tensor(batch.states), as_tensor(batch.actions)
+        states, actions = self.tensor(batch.states), self.tensor(batch.actions)
         if states.shape[1] != actions.shape[1] + 1:
             raise ValueError(f"states have {states.shape[1]} steps, actions {actions.shape[1]}: need T+1 and T")
         return states, actions
@@ -99,4 +107,4 @@ class WorldModelLearner(Learner):
     def predict(self, start: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
         """Open-loop prediction [N, T, B, 13] (eval mode, no gradient)."""
         self.model.eval()
-        return self.model.rollout(as_tensor(start), as_tensor(actions))
+        return self.model.rollout(self.tensor(start), self.tensor(actions))

@@ -1,0 +1,64 @@
+"""The GPU check's script: it imports nothing the GPU machine lacks, refuses a missing GPU in one line, and
+times a paper-size iteration's learner updates (shrunk here)."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def test_the_device_check_imports_only_torch_numpy_and_mujoco():
+    code = (
+        "import sys, orchestrator.bench.device, orchestrator.bench.__main__\n"
+        "bad = sorted({m.split('.')[0] for m in sys.modules} & {'ray', 'mlflow', 'hydra', 'omegaconf', 'scipy',"
+        " 'pandas', 'matplotlib', 'yaml', 'gymnasium'})\n"
+        "print(','.join(bad))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == ""
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="this machine has a GPU")
+def test_no_gpu_is_one_line():
+    out = subprocess.run(
+        [sys.executable, "-m", "orchestrator.bench", "device", "--devices", "cuda"],
+        cwd=ROOT, capture_output=True, text=True,
+    )  # fmt: skip
+    assert out.returncode == 2
+    assert out.stderr.strip().splitlines()[-1].startswith("error: --devices=cuda: this process sees no GPU")
+    assert "Traceback" not in out.stderr
+
+
+def test_a_paper_iteration_times_eight_updates_of_each_learner(monkeypatch):
+    from orchestrator.bench import device, learners
+
+    calls = {"world_model": 0, "vae": 0}
+
+    def small(name):
+        build = learners.BUILDERS[name]
+
+        def make(size, gen, dev):
+            case = build("small", gen, dev)  # the paper's sizes take a minute here
+            update = case.learner.update
+
+            def counted(batch):
+                calls[name] += 1
+                return update(batch)
+
+            case.learner.update = counted
+            return case
+
+        return make
+
+    monkeypatch.setattr(learners, "BUILDERS", {**learners.BUILDERS, **{n: small(n) for n in calls}})
+    out = device.paper_iteration(torch.device("cpu"))
+    assert calls == {"world_model": 9, "vae": 9}  # one warm-up, then the iteration's eight
+    assert out["iteration_s"] == pytest.approx(out["world_model_s"] + out["vae_s"]) and out["vae_s"] > 0
+    text = device.format_report({"torch": "x", "threads": 1, "machine": {"cpus": 2}, "devices": {}})
+    assert text.startswith("device check: torch x")
