@@ -26,7 +26,7 @@ from typing import Any
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig
 
-from orchestrator.sweep import physicsvae, report, tasks
+from orchestrator.sweep import amp, physicsvae, report, tasks
 from orchestrator.tracking.uri import store_uri
 
 SWEEP_FILE = "sweep.json"
@@ -59,7 +59,7 @@ class SweepCallback(Callback):
     spread:     a figure of one per-rollout quantity's mean and spread per point ({"mean", "std", "label",
                 "title"}; PhysicsVAE's Fig. 9), as spread.png.
     claims:     the name of a table of the paper's statements beside our numbers
-                (`orchestrator.sweep.physicsvae.CLAIMS` or `orchestrator.sweep.tasks.CLAIMS`).
+                (`CLAIMS` of `orchestrator.sweep.physicsvae`, `.tasks` or `.amp`).
     facet_by:   a second swept key (e.g. `terrain.kind`): rows carry it, and the tables and figures group by
                 (compare_by, facet_by); None compares `compare_by` alone (seeds pooled).
     figures:    names of a paper's own figures (`orchestrator.sweep.tasks.FIGURES`), each written as <name>.png.
@@ -78,7 +78,7 @@ class SweepCallback(Callback):
         figures: list[str] | None = None,
     ) -> None:
         # Checked here, when the multirun starts, not after its runs.
-        known = {**physicsvae.CLAIMS, **tasks.CLAIMS}
+        known = {**physicsvae.CLAIMS, **tasks.CLAIMS, **amp.CLAIMS}
         if claims is not None and claims not in known:
             raise ValueError(f"callbacks.sweep.claims: unknown table {claims!r}; expected one of {sorted(known)}")
         unknown = [f for f in figures or [] if f not in tasks.FIGURES]
@@ -213,6 +213,9 @@ class SweepCallback(Callback):
                     self.logger.log_artifact(str(curves_png))
                     key, label = next(iter(curves.items()))
                     text += "\n" + report.curve_table(rows, histories, by, key, label, facet)
+                    for row in rows:  # the first curve's summary, for claims about how a point learns
+                        summary = report.curve_summary(histories.get(row["run_id"], {}).get(key, []))
+                        row.update({f"curve/{k}": v for k, v in summary.items()})
             if self.spread:
                 spread_png = self.sweep_dir / "spread.png"
                 sp = self.spread
@@ -251,6 +254,8 @@ def claims_table(name: str, rows: list[dict[str, Any]], compare_by: str, facet_b
     """The paper's statements beside ours, from whichever registry holds `name` (the task tables read the facet)."""
     if name in tasks.CLAIMS:
         return tasks.CLAIMS[name](rows, compare_by, facet_by)
+    if name in amp.CLAIMS:
+        return amp.CLAIMS[name](rows, compare_by)
     return physicsvae.CLAIMS[name](rows, compare_by)
 
 
