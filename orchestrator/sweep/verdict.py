@@ -83,11 +83,11 @@ def judge(
         b = np.asarray(b, float)
         effect = float(a.mean() - b.mean()) if len(a) and len(b) else math.nan
         small = min(len(a), len(b)) < 2
-        flat = not small and np.ptp(a) == 0 and np.ptp(b) == 0
+        flat = not small and _flat(a) and _flat(b)
     else:
         effect = float(a.mean()) if len(a) else math.nan
         small = len(a) < 2
-        flat = not small and np.ptp(a) == 0
+        flat = not small and _flat(a)
     if small or flat:
         why = "fewer than two seeds on a side" if small else "the seeds' values are identical: no spread"
         return Judgement(NOT_RESOLVED, effect, math.nan, math.nan, confidence, paper_effect, why=why, label=label)
@@ -107,6 +107,11 @@ def judge(
     sides = 2 if two_sample else 1
     needed = seeds_needed(spread, paper_effect, confidence, sides) if paper_effect is not None else None
     return Judgement(verdict, effect, low, high, confidence, paper_effect, needed, label=label)
+
+
+def _flat(v: np.ndarray) -> bool:
+    """The seeds agree to rounding (equal values summed in another order): no spread to judge by."""
+    return bool(np.ptp(v) <= 1e-9 * max(1.0, float(np.abs(v).max())))
 
 
 def seeds_needed(spread: float, effect: float, confidence: float, sides: int = 2) -> int | None:

@@ -124,3 +124,12 @@ def test_amps_gradient_penalty_statements_compare_no_penalty_with_amps_weight():
     assert "w_gp = 0: 0.51 (3) vs w_gp = 10: 0.11 (3)" in fluctuates and "**reproduced**" in fluctuates
     assert "**not resolved**" in slower
     assert "97.5% CI" in text  # two statements, Bonferroni
+
+
+def test_seeds_equal_to_rounding_have_no_spread():
+    """Three seeds that fall at the same step (means equal but for the order of a float sum) give no interval:
+    not resolved, never a zero-width interval read as contradicted."""
+    a = np.array([1.1, 1.1000000000000003, 1.0999999999999999])
+    j = judge(a, None, (-np.inf, 1.0), 1)
+    assert j.verdict == NOT_RESOLVED and "no spread" in j.why
+    assert judge(a, a + 2e-16, LARGER, 1).verdict == NOT_RESOLVED
