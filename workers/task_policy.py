@@ -43,6 +43,17 @@ def helper_layout(config: TaskConfig, state_dim: int, latent_dim: int, action_di
     return HelperLayout(state_dim, goal_dim, latent_dim, action_dim, tuple(config.helper_hidden))
 
 
+def ppo_dims(
+    config: TaskConfig, state_dim: int, latent_dim: int, action_dim: int
+) -> tuple[int, int, HelperLayout | None]:
+    """(observation size, action size, helper layout or None) of the task policy PPO trains: (s, g) → u_z, or
+    with the helper branch (s, g, b) → (u_z, u_h)."""
+    helper = helper_layout(config, state_dim, latent_dim, action_dim)
+    if helper is None:
+        return state_dim + goal_observation_dim(config.task), latent_dim, None
+    return helper.obs_dim, helper.act_dim, helper
+
+
 def skill_controller(skill: dict[str, Any], num_bodies: int, action_dim: int) -> torch.nn.Module:
     """The frozen VAE controller of a skill payload {"config": VAEConfig, "module": state dict, ...}."""
     controller = build_controller(num_bodies, action_dim, skill["config"])
@@ -162,11 +173,7 @@ class TaskPPOPolicy(TaskRolloutPolicy):
         self.controller = skill_controller(skill, self.num_bodies, self.action_dim)
         self.prior_action = bool(skill.get("prior_action", True))
         state_dim, latent_dim = self.controller.state_norm.mean.shape[0], self.controller.latent_dim
-        self.helper = helper_layout(self.config, state_dim, latent_dim, self.action_dim)
-        if self.helper is None:
-            obs_dim, act_dim = state_dim + goal_observation_dim(self.config.task), latent_dim
-        else:
-            obs_dim, act_dim = self.helper.obs_dim, self.helper.act_dim
+        obs_dim, act_dim, self.helper = ppo_dims(self.config, state_dim, latent_dim, self.action_dim)
         module = build_actor_critic(obs_dim, act_dim, self.ppo_config, self.helper)
         self.module = module.eval().requires_grad_(False)
         if self.weights is not None:

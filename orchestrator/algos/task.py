@@ -40,8 +40,7 @@ from orchestrator.components.ppo import PPOActor
 from orchestrator.components.task import TaskActor, skill_model
 from orchestrator.evaluation.tasks import evaluate_task
 from workers.body.features import StateLayout
-from workers.losses.task import goal_observation_dim
-from workers.task_policy import TaskPPOPolicy, TaskRolloutPolicy, helper_layout
+from workers.task_policy import TaskPPOPolicy, TaskRolloutPolicy, ppo_dims
 
 
 class SkillTask:
@@ -157,11 +156,7 @@ class TaskPPO(SkillTask, OnPolicy):
         skill = self.skill_payload()
         task = self.cfg.algo.task
         state_dim, latent_dim = StateLayout(self.character.num_bodies).dim, skill["config"].latent_dim
-        helper = helper_layout(task, state_dim, latent_dim, self.character.num_actions)
-        if helper is None:
-            obs_dim, act_dim = state_dim + goal_observation_dim(task.task), latent_dim
-        else:
-            obs_dim, act_dim = helper.obs_dim, helper.act_dim
+        obs_dim, act_dim, helper = ppo_dims(task, state_dim, latent_dim, self.character.num_actions)
         return [Component("ppo", PPOActor, (self.cfg, obs_dim, act_dim, helper), actor="learner-ppo")]
 
     @classmethod
