@@ -59,3 +59,38 @@ def test_integrate_constant_spin_about_z():
         out = B.integrate(bs, torch.zeros(1, 1, 6, dtype=torch.float64), 0.25, scheme)
         np.testing.assert_allclose(out[0, 0, :3], [0.25, 0, 0], atol=1e-12)
         np.testing.assert_allclose(B.yaw(out[0, 0, 3:7]), 0.5, atol=1e-12)
+
+
+def test_heading_cos_sin_is_the_yaw_angle_and_the_rotations_are_the_yaw_matrices():
+    g = torch.Generator().manual_seed(0)
+    q = torch.randn(50, 4, generator=g, dtype=torch.float64)
+    q = q / q.norm(dim=-1, keepdim=True)
+    c, s = B.heading_cos_sin(q)
+    assert c.shape == s.shape == (50, 1, 1)
+    theta = B.yaw(q)
+    np.testing.assert_allclose(c[:, 0, 0], torch.cos(theta), atol=1e-12)
+    np.testing.assert_allclose(s[:, 0, 0], torch.sin(theta), atol=1e-12)
+    v = torch.randn(50, 7, 3, generator=g, dtype=torch.float64)
+    by_matrix = (B.yaw_matrix(-theta)[:, None] @ v[..., None])[..., 0]
+    c, s = c[:, 0], s[:, 0]  # one axis (7 vectors) before the coordinates
+    np.testing.assert_allclose(B.to_heading(v, c, s), by_matrix, atol=1e-12)
+    np.testing.assert_allclose(B.from_heading(B.to_heading(v, c, s), c, s), v, atol=1e-12)
+    # A root whose x axis points straight up has no heading: atan2(0, 0) = 0, so cos 1 and sin 0, not NaN.
+    up = torch.tensor([[np.cos(np.pi / 4), 0.0, -np.sin(np.pi / 4), 0.0]], dtype=torch.float64)
+    c, s = B.heading_cos_sin(up)
+    assert abs(float(c) - 1.0) < 1e-7 and abs(float(s)) < 1e-7
+
+
+def test_features_turn_with_the_character_and_their_gradient_is_finite(walk_run):
+    """Turning the whole scene about z leaves s unchanged (it lives in the heading frame), and the elementwise
+    rotation is differentiable everywhere a body state can be."""
+    bs = torch.as_tensor(B.pack(walk_run.state(np.array([0, 1, 1]), np.array([2, 30, 77])))).double()
+    turn = torch.tensor([np.cos(0.35), 0.0, 0.0, np.sin(0.35)], dtype=torch.float64)  # 0.7 rad about z
+    turned = bs.clone()
+    for part in (B.POS, B.LIN, B.ANG):
+        turned[..., part] = (B.yaw_matrix(torch.tensor(0.7, dtype=torch.float64)) @ bs[..., part, None])[..., 0]
+    turned[..., B.QUAT] = B.quat_mul(turn.expand_as(bs[..., B.QUAT]), bs[..., B.QUAT])
+    np.testing.assert_allclose(B.features(turned), B.features(bs), atol=1e-6)  # float32 clip data
+    x = bs.clone().requires_grad_()
+    (grad,) = torch.autograd.grad(B.features(x).square().sum(), x)
+    assert torch.isfinite(grad).all() and grad[..., B.QUAT].abs().sum() > 0

@@ -12,6 +12,7 @@ from workers.learners.base import NonFiniteWeightsError, Schedule
 from workers.learners.world_model import WorldModelBatch, WorldModelConfig, WorldModelLearner, build_world_model
 from workers.losses.world_model import world_model_loss
 from workers.models import body_state as B
+from workers.models.world_model import WorldModel
 
 
 def test_loss_known_answer():
@@ -140,3 +141,14 @@ def test_physicsvaes_regress_layer_learns_the_next_features_by_mse(walk_run):
         WorldModelConfig(kind="regress", rollout_steps=8)
     with pytest.raises(ValueError, match="world_model.kind: unknown"):
         WorldModelConfig(kind="lstm")
+
+
+def test_a_step_given_the_features_is_the_step_that_computes_them(walk_run):
+    """A rollout hands each state's features to the model (computed once for the policy and the model); the
+    prediction is the one the model makes from the body state alone."""
+    torch.manual_seed(0)
+    model = WorldModel(15, 28, (32, 32))
+    bs = torch.as_tensor(B.pack(walk_run.state(np.array([0, 1]), np.array([5, 40]))))
+    action = 0.3 * torch.randn(2, 28)
+    model.observe(bs, action, bs)
+    assert torch.equal(model(bs, action, B.features(bs)), model(bs, action))

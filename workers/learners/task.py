@@ -141,7 +141,7 @@ class TaskLearner(Learner):
             s = body_state.features(bs)
             eps = torch.randn(bs.shape[0], self.controller.latent_dim, device=bs.device) if c.latent_noise else None
             action, mu_g = self.policy(self.controller, s, goal_observation(c.task, bs, goal), eps)
-            bs = self.world_model(bs, action)
+            bs = self.world_model(bs, action, s)
             total, terms = task_loss(c.task, bs, goal, c.weights, c.fall_height)
             totals.append(total)
             reg.append((mu_g**2).sum(-1))

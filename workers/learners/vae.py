@@ -234,13 +234,14 @@ class VAELearner(Learner):
         c = self.config
         ref_features = body_state.features(reference)  # [N, T+1, D]
         bs = states[:, 0]
+        s = body_state.features(bs)
         predicted, kls, actions = [], [], []
         for t in range(reference.shape[1] - 1):
-            s = body_state.features(bs)
             q, p = self.vae.encode(s, ref_features[:, t + 1])
             a = self.vae.act(s, q.rsample(self.generator))
-            bs = self.world_model(bs, a + self._noise(a))
-            predicted.append(body_state.features(bs))
+            bs = self.world_model(bs, a + self._noise(a), s)
+            s = body_state.features(bs)  # the prediction the loss compares, and the next step's state
+            predicted.append(s)
             kls.append(gaussian_kl(q.mean, q.log_std, p.mean, p.log_std))
             actions.append(a)
         return controlvae_loss(

@@ -96,25 +96,51 @@ def yaw_matrix(theta: torch.Tensor) -> torch.Tensor:
     return torch.stack((c, -s, z, s, c, z, z, z, o), dim=-1).reshape(theta.shape + (3, 3))
 
 
+def heading_cos_sin(q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """cos and sin [..., 1, 1] of the heading angle of quaternions [..., 4] (`yaw`), without the angle: the
+    rotated x axis's horizontal part, normalised (heading 0 where it has none, as atan2(0, 0) gives)."""
+    w, x, y, z = q.unbind(-1)
+    hx, hy = 1 - 2 * (y * y + z * z), 2 * (x * y + w * z)
+    r2 = hx * hx + hy * hy
+    flat = r2 == 0
+    inv = torch.rsqrt(torch.where(flat, torch.ones_like(r2), r2))
+    c = torch.where(flat, torch.ones_like(r2), hx * inv)
+    return c[..., None, None], (hy * inv)[..., None, None]
+
+
+def to_heading(v: torch.Tensor, c: torch.Tensor, s: torch.Tensor) -> torch.Tensor:
+    """Vectors [..., 3] rotated about z by minus the heading whose cos and sin are c, s (world → heading
+    frame): elementwise, as `yaw_matrix(-theta) @ v` to float rounding, in a handful of kernels. c and s
+    broadcast against one coordinate of v (v[..., 0]): `heading_cos_sin`'s [..., 1, 1] fit v [..., B, k, 3]."""
+    x, y, z = v.unbind(-1)
+    return torch.stack((c * x + s * y, c * y - s * x, z), dim=-1)
+
+
+def from_heading(v: torch.Tensor, c: torch.Tensor, s: torch.Tensor) -> torch.Tensor:
+    """The inverse of `to_heading`: vectors [..., 3] rotated about z by the heading (heading frame → world)."""
+    x, y, z = v.unbind(-1)
+    return torch.stack((c * x - s * y, s * x + c * y, z), dim=-1)
+
+
 def features(bs: torch.Tensor) -> torch.Tensor:
-    """ControlVAE's s [..., 16·B + 3] of body states [..., B, 13]; see `workers.body.features`."""
+    """ControlVAE's s [..., 16·B + 3] of body states [..., B, 13]; see `workers.body.features`.
+
+    Every vector of a body (its position from the root, the first two columns of its rotation matrix, its
+    velocities) is turned into the heading frame in one elementwise pass: at small batches a rollout step's
+    cost is the number of kernels, not their arithmetic."""
     lead = bs.shape[:-2]
-    pos, quat, lin, ang = bs[..., POS], bs[..., QUAT], bs[..., LIN], bs[..., ANG]
-    h_inv = yaw_matrix(-yaw(quat[..., 0, :])).unsqueeze(-3)  # [..., 1, 3, 3]
-
-    def to_heading(v: torch.Tensor) -> torch.Tensor:
-        return (h_inv @ v.unsqueeze(-1)).squeeze(-1)
-
-    mats = h_inv @ quat_to_matrix(quat)
-    rot6 = torch.cat((mats[..., :, 0], mats[..., :, 1]), dim=-1)
-    parts = (
-        to_heading(pos - pos[..., :1, :]),
-        rot6,
-        to_heading(lin),
-        to_heading(ang),
-    )
+    pos, lin, ang = bs[..., POS], bs[..., LIN], bs[..., ANG]
+    w, x, y, z = bs[..., QUAT].unbind(-1)
+    col0 = torch.stack((1 - 2 * (y * y + z * z), 2 * (x * y + w * z), 2 * (x * z - w * y)), dim=-1)
+    col1 = torch.stack((2 * (x * y - w * z), 1 - 2 * (x * x + z * z), 2 * (y * z + w * x)), dim=-1)
+    w0, x0, y0, z0 = w[..., 0], x[..., 0], y[..., 0], z[..., 0]
+    up = torch.stack((2 * (x0 * z0 + w0 * y0), 2 * (y0 * z0 - w0 * x0), 1 - 2 * (x0 * x0 + y0 * y0)), dim=-1)
+    c, s = heading_cos_sin(bs[..., 0, QUAT])  # [..., 1, 1]
+    vectors = to_heading(torch.stack((pos - pos[..., :1, :], col0, col1, lin, ang), dim=-2), c, s)  # [..., B, 5, 3]
+    up = to_heading(up, c[..., 0, 0], s[..., 0, 0])
+    parts = (vectors[..., 0, :], vectors[..., 1:3, :], vectors[..., 3, :], vectors[..., 4, :])
     flat = [p.reshape(lead + (-1,)) for p in parts]
-    return torch.cat((*flat, pos[..., 2], mats[..., 0, :, 2]), dim=-1)
+    return torch.cat((*flat, pos[..., 2], up), dim=-1)
 
 
 def heading_velocity_delta(bs: torch.Tensor, bs_next: torch.Tensor) -> torch.Tensor:
@@ -122,10 +148,9 @@ def heading_velocity_delta(bs: torch.Tensor, bs_next: torch.Tensor) -> torch.Ten
 
     This is what the world model predicts; `integrate` is its inverse.
     """
-    h_inv = yaw_matrix(-yaw(bs[..., 0, QUAT])).unsqueeze(-3)
-    dv = torch.cat((bs_next[..., LIN] - bs[..., LIN], bs_next[..., ANG] - bs[..., ANG]), dim=-1)
-    dv = dv.unflatten(-1, (2, 3))  # [..., B, 2, 3]
-    return (h_inv.unsqueeze(-3) @ dv.unsqueeze(-1)).squeeze(-1).flatten(-2)
+    c, s = heading_cos_sin(bs[..., 0, QUAT])
+    dv = (bs_next[..., LIN.start : ANG.stop] - bs[..., LIN.start : ANG.stop]).unflatten(-1, (2, 3))  # [..., B, 2, 3]
+    return to_heading(dv, c, s).flatten(-2)
 
 
 INTEGRATORS = ("euler", "semi_implicit", "midpoint")
@@ -143,8 +168,8 @@ def integrate(bs: torch.Tensor, delta: torch.Tensor, dt: float, scheme: str = "s
     targets, the one-step error is 15 mm and 4.8° (euler), 7.7 mm and 2.1°
     (semi_implicit), 5.8 mm and 2.7° (midpoint), mean over bodies.
     """
-    h = yaw_matrix(yaw(bs[..., 0, QUAT])).unsqueeze(-3).unsqueeze(-3)  # [..., 1, 1, 3, 3]
-    d_world = (h @ delta.unflatten(-1, (2, 3)).unsqueeze(-1)).squeeze(-1)  # [..., B, 2, 3]
+    c, s = heading_cos_sin(bs[..., 0, QUAT])
+    d_world = from_heading(delta.unflatten(-1, (2, 3)), c, s)  # [..., B, 2, 3]
     lin = bs[..., LIN] + d_world[..., 0, :]
     ang = bs[..., ANG] + d_world[..., 1, :]
     if scheme == "semi_implicit":

@@ -53,17 +53,16 @@ class WorldModel(nn.Module):
         self.action_norm.update(action)
         self.delta_norm.update(body_state.heading_velocity_delta(bs, bs_next).flatten(-2))
 
-    def delta(self, bs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
-        """Predicted change of velocities [..., B, 6] in the heading frame of bs [..., B, 13]."""
-        x = torch.cat((self.state_norm(body_state.features(bs)), self.action_norm(action)), dim=-1)
-        out = self.net(x)
-        if self.delta_norm.count > 0:
-            out = out * self.delta_norm.std.to(out.dtype) + self.delta_norm.mean.to(out.dtype)
-        return out.unflatten(-1, (self.num_bodies, 6))
+    def delta(self, bs: torch.Tensor, action: torch.Tensor, s: torch.Tensor | None = None) -> torch.Tensor:
+        """Predicted change of velocities [..., B, 6] in the heading frame of bs [..., B, 13]. `s`: bs's
+        features, when the caller has them already (a rollout computes each state's features once)."""
+        s = body_state.features(bs) if s is None else s
+        x = torch.cat((self.state_norm(s), self.action_norm(action)), dim=-1)
+        return self.delta_norm.denormalize(self.net(x)).unflatten(-1, (self.num_bodies, 6))
 
-    def forward(self, bs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
-        """The next body state [..., B, 13]."""
-        return body_state.integrate(bs, self.delta(bs, action), self.dt, self.integrator)
+    def forward(self, bs: torch.Tensor, action: torch.Tensor, s: torch.Tensor | None = None) -> torch.Tensor:
+        """The next body state [..., B, 13] (`s`: bs's features, if known; see `delta`)."""
+        return body_state.integrate(bs, self.delta(bs, action, s), self.dt, self.integrator)
 
     def next_features(self, bs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
         """s′ [..., D]: the features of the next body state."""
