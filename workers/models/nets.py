@@ -108,6 +108,7 @@ class Normalizer(nn.Module):
         self.register_buffer("count", torch.zeros((), dtype=torch.float64))
         self.register_buffer("mean", torch.zeros(dim, dtype=torch.float64))
         self.register_buffer("m2", torch.zeros(dim, dtype=torch.float64))
+        self._cached: tuple | None = None  # see `affine`
 
     @torch.no_grad()
     def update(self, x: torch.Tensor) -> None:
@@ -131,7 +132,29 @@ class Normalizer(nn.Module):
         var = self.m2 / self.count.clamp(min=1.0)
         return var.sqrt().clamp(min=self.eps)
 
+    def affine(self, dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor] | None:
+        """(mean, std) as `dtype`, or None before any sample. A network applies its normalisers at every step
+        of a rollout while the statistics stay put, so the conversion is kept until they change: `update`,
+        `load_state_dict` and in-place writes bump the buffers' version counters, `.to()` replaces them."""
+        buffers = (self.count, self.mean, self.m2)
+        key = (dtype, torch.is_inference_mode_enabled(), *(t._version for t in buffers))
+        cached = self._cached
+        if cached is None or cached[1] != key or not all(a is b for a, b in zip(cached[0], buffers, strict=True)):
+            with torch.no_grad():
+                value = None if self.count == 0 else (self.mean.to(dtype), self.std.to(dtype))
+            cached = self._cached = (buffers, key, value)
+        return cached[2]
+
+    def __getstate__(self) -> dict:
+        return {**super().__getstate__(), "_cached": None}
+
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        if self.count == 0:
+        affine = self.affine(x.dtype)
+        if affine is None:
             return x
-        return (x - self.mean.to(x.dtype)) / self.std.to(x.dtype)
+        return (x - affine[0]) / affine[1]
+
+    def denormalize(self, y: torch.Tensor) -> torch.Tensor:
+        """y · std + mean: a standardised output back in the data's units (unchanged before any sample)."""
+        affine = self.affine(y.dtype)
+        return y if affine is None else y * affine[1] + affine[0]
