@@ -166,7 +166,7 @@ class Learner:
         total.backward()
         params = self.parameters()
         clip = self.grad_clip if self.grad_clip else float("inf")
-        grad_norm = float(torch.nn.utils.clip_grad_norm_(params, clip))
+        grad_norm = float(torch.nn.utils.clip_grad_norm_(params, clip, foreach=True))
         if not math.isfinite(grad_norm):
             self.optimizer.zero_grad(set_to_none=True)
             return self._skip(metrics)
@@ -240,8 +240,14 @@ def _to_cpu(x: Any) -> Any:
 OPTIMIZERS = {"adam": torch.optim.Adam, "radam": torch.optim.RAdam, "adamw": torch.optim.AdamW, "sgd": torch.optim.SGD}
 
 
-def make_optimizer(name: str, params: Iterable[nn.Parameter], lr: float) -> torch.optim.Optimizer:
+def make_optimizer(
+    name: str, params: Iterable[nn.Parameter] | list[dict], lr: float, **options
+) -> torch.optim.Optimizer:
+    """The optimiser `name` over `params` (tensors or parameter groups), with its multi-tensor implementation:
+    one kernel per step of the update rule for all parameters rather than one per parameter (on a GPU torch
+    picks it by itself; on the CPU it does not, and at our sizes the per-parameter loop costs more than the
+    arithmetic). The same update rule, to float rounding."""
     try:
-        return OPTIMIZERS[name](params, lr=lr)
+        return OPTIMIZERS[name](params, lr=lr, foreach=True, **options)
     except KeyError:
         raise ValueError(f"unknown optimizer {name!r}; expected one of {sorted(OPTIMIZERS)}") from None

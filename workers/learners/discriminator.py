@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from workers.learners.base import Learner, all_finite
+from workers.learners.base import Learner, all_finite, make_optimizer
 from workers.losses.discriminator import (
     check_loss_type,
     discriminator_loss,
@@ -158,12 +158,14 @@ class DiscriminatorLearner(Learner):
             module = Discriminator(
                 obs_dim, config.hidden, config.activation, config.num_skills, config.skill_embed_dim
             ).to(device)
-        if config.optimizer == "sgd":
-            optimizer = torch.optim.SGD(
-                module.parameters(), lr=config.lr, momentum=config.momentum, weight_decay=config.weight_decay
-            )
-        else:
-            optimizer = torch.optim.Adam(module.parameters(), lr=config.lr, weight_decay=config.weight_decay)
+        options = {"momentum": config.momentum} if config.optimizer == "sgd" else {}
+        optimizer = make_optimizer(
+            config.optimizer,
+            module.parameters(),
+            config.lr,
+            weight_decay=config.weight_decay,
+            **options,
+        )
         super().__init__(module, optimizer, config.grad_clip, device)
         self.replay = TransitionReplay(config.replay_capacity, 2 * obs_dim, config.num_skills > 0)
         self.rng = np.random.default_rng(seed)

@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from workers.learners.base import Learner, all_finite
+from workers.learners.base import Learner, all_finite, make_optimizer
 from workers.losses.ppo import action_bound_loss, compute_gae, ppo_loss
 from workers.models.actor_critic import ActorCritic, HelperActorCritic, HelperLayout
 
@@ -175,10 +175,8 @@ class PPOLearner(Learner):
             {"params": list(module.policy.parameters()), "lr": cfg.policy_lr},
             {"params": list(module.critic.parameters()), "lr": cfg.value_lr},
         ]
-        if cfg.optimizer == "sgd":
-            optimizer: torch.optim.Optimizer = torch.optim.SGD(groups, lr=cfg.policy_lr, momentum=cfg.momentum)
-        else:
-            optimizer = torch.optim.Adam(groups, lr=cfg.policy_lr)
+        options = {"momentum": cfg.momentum} if cfg.optimizer == "sgd" else {}
+        optimizer = make_optimizer(cfg.optimizer, groups, cfg.policy_lr, **options)
         super().__init__(module, optimizer, cfg.grad_clip, device)
         self.module: ActorCritic
         self.config = cfg
