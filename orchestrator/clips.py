@@ -107,6 +107,8 @@ def _joint_map(parser: argparse.ArgumentParser, text: str | None) -> dict[str, s
         value = json.loads(Path(text).read_text() if Path(text).is_file() else text)
     except (OSError, ValueError) as e:
         parser.error(f"--joint-map: neither a JSON object nor a JSON file ({e})")
+    except RecursionError:
+        parser.error("--joint-map: JSON nested deeper than Python's recursion limit")
     if not isinstance(value, dict) or not all(isinstance(v, str) for v in value.values()):
         parser.error('--joint-map: expected a JSON object {"source joint": "our body", ...}')
     return value

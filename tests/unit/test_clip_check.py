@@ -54,6 +54,7 @@ def _bad_quat_frames():
 
 CASES = [
     ("not JSON", lambda p: p.write_text("this is not json"), "not valid JSON"),
+    ("nested too deeply", lambda p: p.write_text('{"Frames": ' + "[" * 100_000 + "]" * 100_000 + "}"), "nested"),
     ("no frames", lambda p: p.write_text(json.dumps({"Loop": "none", "Frames": []})), "no frames"),
     ("wrong width", lambda p: p.write_text(json.dumps({"Frames": [_frame(), _frame(43)]})), "frame 1: expected 44"),
     ("NaN", lambda p: p.write_text(json.dumps({"Frames": _nan_frames()}).replace("NaN", "NaN")), "frame 3: non-finite"),

@@ -53,6 +53,8 @@ def read_frames(path: Path) -> tuple[np.ndarray, bool]:
         doc = json.loads(Path(path).read_text())
     except json.JSONDecodeError as e:
         raise ClipError(path, f"not valid JSON ({e.msg} at line {e.lineno})") from None
+    except RecursionError:  # Python's parser recurses per level of nesting
+        raise ClipError(path, "not valid JSON for a clip (nested deeper than Python's recursion limit)") from None
     except UnicodeDecodeError:
         raise ClipError(path, "not valid JSON (not text)") from None
     except OSError as e:
