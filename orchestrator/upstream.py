@@ -53,7 +53,11 @@ class Upstream:
         return f"stage {self.role} ({self.name}, run {self.run_id})"
 
     def artifact(self, path: str) -> Path:
-        """The artifact `path` of the stage's run, downloaded; a StageError naming both when it is not there."""
+        """The artifact `path` of the stage's run, downloaded; a StageError naming both when it is not there, or
+        when the path (a name the store lists) is absolute or climbs out with '..': it would land outside the cache."""
+        parts = Path(path).parts
+        if not parts or Path(path).is_absolute() or ".." in parts or "\\" in path:
+            raise StageError(f"{self.describe()}: artifact path {path!r} is refused (absolute, empty or with '..')")
         local = self.cache / path
         if local.exists():
             return local
