@@ -46,6 +46,7 @@ from orchestrator.tracking.base import (
     truncate,
 )
 from orchestrator.tracking.spool import (  # sets MLflow's client defaults before mlflow is imported
+    ARTIFACT_DIR,
     METRICS_PER_BATCH,
     PARAMS_PER_BATCH,
     PENDING,
@@ -61,7 +62,6 @@ __all__ = ["EXPERIMENT_TAGS", "MlflowLogger", "Sender", "Spool", "replay_spool",
 log = logging.getLogger(__name__)
 
 SPOOL_FILE = "tracking-spool.jsonl"
-ARTIFACT_DIR = "tracking-artifacts"
 MAX_TAG_VALUE_LENGTH = 8000  # mlflow.utils.validation.MAX_TAG_VAL_LENGTH
 
 

@@ -49,6 +49,8 @@ from mlflow.tracking import MlflowClient  # noqa: E402
 
 from orchestrator.tracking.base import EXPERIMENT_TAGS  # noqa: E402
 
+ARTIFACT_DIR = "tracking-artifacts"  # under the run directory, beside the spool: files the tracker wrote for upload
+
 log = logging.getLogger(__name__)
 
 PARAMS_PER_BATCH = 100  # MLflow's per-request limits
@@ -160,6 +162,7 @@ class Sender:
         self.max_retry_interval_s = max_retry_interval_s
         self.client = MlflowClient(tracking_uri=uri)
         self.spool = Spool(spool_path)
+        self.owned_root = Path(spool_path).parent / ARTIFACT_DIR  # where the tracker writes files for upload
         self.send_lock = threading.Lock()
         self.ids: dict[str, str] = {}
         self.background = background
@@ -263,11 +266,11 @@ class Sender:
                     queue.extendleft(reversed(singles))
                 else:
                     log.warning("tracking: %s record dropped, refused by MLflow: %s", batch["op"], err)
-                    _discard_owned(batch)
+                    _discard_owned(batch, self.owned_root)
                 continue
             for _ in range(used):
                 queue.popleft()
-            _discard_owned(batch)
+            _discard_owned(batch, self.owned_root)
             if self._failures:
                 self._failures, self._retry_at = 0, 0.0
                 log.warning("tracking: %s answers again", self.uri)
@@ -386,7 +389,13 @@ def _split(record: dict) -> list[dict]:
     return [record]
 
 
-def _discard_owned(record: dict) -> None:
-    """Delete a file the tracker wrote for upload (log_dict, log_figure) once it is done with."""
-    if record["op"] == "artifact" and record.get("owned"):
-        shutil.rmtree(Path(record["path"]).parent, ignore_errors=True)
+def _discard_owned(record: dict, owned_root: Path) -> None:
+    """Delete a file the tracker wrote for upload (log_dict, log_figure) once it is done with: its folder, one
+    of those the tracker makes directly under `owned_root`, and nothing else, whatever a spool line says."""
+    if record["op"] != "artifact" or not record.get("owned"):
+        return
+    folder = Path(record["path"]).parent
+    if folder.is_symlink() or folder.resolve().parent != owned_root.resolve():
+        log.warning("tracking: not deleting %s: not a folder the tracker made under %s", folder, owned_root)
+        return
+    shutil.rmtree(folder, ignore_errors=True)
