@@ -130,14 +130,11 @@ def features(bs: torch.Tensor) -> torch.Tensor:
     cost is the number of kernels, not their arithmetic."""
     lead = bs.shape[:-2]
     pos, lin, ang = bs[..., POS], bs[..., LIN], bs[..., ANG]
-    w, x, y, z = bs[..., QUAT].unbind(-1)
-    col0 = torch.stack((1 - 2 * (y * y + z * z), 2 * (x * y + w * z), 2 * (x * z - w * y)), dim=-1)
-    col1 = torch.stack((2 * (x * y - w * z), 1 - 2 * (x * x + z * z), 2 * (y * z + w * x)), dim=-1)
-    w0, x0, y0, z0 = w[..., 0], x[..., 0], y[..., 0], z[..., 0]
-    up = torch.stack((2 * (x0 * z0 + w0 * y0), 2 * (y0 * z0 - w0 * x0), 1 - 2 * (x0 * x0 + y0 * y0)), dim=-1)
+    m = quat_to_matrix(bs[..., QUAT])  # [..., B, 3, 3]
     c, s = heading_cos_sin(bs[..., 0, QUAT])  # [..., 1, 1]
-    vectors = to_heading(torch.stack((pos - pos[..., :1, :], col0, col1, lin, ang), dim=-2), c, s)  # [..., B, 5, 3]
-    up = to_heading(up, c[..., 0, 0], s[..., 0, 0])
+    vectors = torch.stack((pos - pos[..., :1, :], m[..., :, 0], m[..., :, 1], lin, ang), dim=-2)
+    vectors = to_heading(vectors, c, s)  # [..., B, 5, 3]
+    up = to_heading(m[..., 0, :, 2], c[..., 0, 0], s[..., 0, 0])  # the root's z axis
     parts = (vectors[..., 0, :], vectors[..., 1:3, :], vectors[..., 3, :], vectors[..., 4, :])
     flat = [p.reshape(lead + (-1,)) for p in parts]
     return torch.cat((*flat, pos[..., 2], up), dim=-1)
