@@ -59,13 +59,30 @@ def full_key(message: str) -> str:
 
 def register() -> None:
     cs = ConfigStore.instance()
-    cs.store(name="schema", node=Config)
+    schema = OmegaConf.structured(Config)
+    # A map given whole on the command line (`motion.joint_map='{Hips: pelvis}'`) adds keys: open under struct mode.
+    OmegaConf.set_struct(schema.motion.joint_map, False)
+    cs.store(name="schema", node=schema)
 
 
-def validate(cfg: DictConfig | dict[str, Any]) -> Config:
-    """The composed config as schema objects; raises ConfigError naming the key of a bad value."""
+def shipped_methods() -> set[str]:
+    """The `algo._target_` of every method in conf/algo: all that a config read back from a store may name."""
+    return {str(OmegaConf.load(p).get("_target_")) for p in sorted((CONF_DIR / "algo").glob("*.yaml"))}
+
+
+def validate(cfg: DictConfig | dict[str, Any], shipped_only: bool = False) -> Config:
+    """The composed config as schema objects; raises ConfigError naming the key of a bad value.
+
+    shipped_only: for a config that is not the user's own (read back from a store), `algo._target_` must name
+    one of the methods in conf/algo, checked before its module is imported (importing runs the module's code).
+    """
     if not isinstance(cfg, DictConfig):
         cfg = OmegaConf.create(cfg)
+    target = OmegaConf.select(cfg, "algo._target_", default=None)
+    if shipped_only and target not in (methods := shipped_methods()):
+        raise ConfigError(
+            f"algo._target_: {target!r} is not one of the methods in conf/algo ({', '.join(sorted(methods))})"
+        )
     try:
         structured = OmegaConf.merge(OmegaConf.structured(Config), cfg)
     except Exception as e:  # OmegaConf's type errors name the full key

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from orchestrator.provenance import CODE_VERSIONS
 from orchestrator.tracking.uri import tracking_uri_error
 from workers.body.character import file_problem
 from workers.learners.base import DEVICES as LEARNER_DEVICES
@@ -332,10 +333,21 @@ class TrackingConfig:
     log_model: bool = True
     # Seconds between system metrics (CPU, memory, disk, network: MLflow's system/ metrics); 0: none.
     system_metrics_s: float = 10.0
+    # Upstream stages are reused from FINISHED runs of this run's own experiment and of the experiments named
+    # here; "*" trusts every experiment of the store (anyone who can write to it could plant a stage).
+    reuse_from: list[str] = field(default_factory=list)
+    # What of the code a stage hash covers: "version" (the package's; commits between versions reuse stages)
+    # or "commit" (the git commit: every commit retrains every stage).
+    stage_code: str = "version"
 
     def __post_init__(self) -> None:
         if self.uri is not None and (problem := tracking_uri_error(self.uri)):
             raise ConfigError(f"tracking.uri: {problem}")
+        if self.stage_code not in CODE_VERSIONS:
+            raise ConfigError(f"tracking.stage_code must be one of {', '.join(CODE_VERSIONS)}, got {self.stage_code!r}")
+        for i, name in enumerate(self.reuse_from):
+            if not str(name).strip():
+                raise ConfigError(f"tracking.reuse_from[{i}] is empty (an experiment's name, or '*')")
 
 
 @dataclass

@@ -11,13 +11,20 @@ an existing run, `run:<id>` (or the bare 32-digit id), which must have FINISHED.
 
 Every run carries the tag `stage_hash`: a hash of the resolved config that decides its
 result, its upstream stages' hashes in place of their specs (so a changed upstream stage
-invalidates everything below it), and nothing that does not change the result
-(`run_dir`, `progress`, `tracking`, `preset`, how the runtime is hosted). Resolving a
-need looks for a FINISHED run with that hash in the same store, in any experiment: found,
-it is reused and its artifacts downloaded; not found (or only FAILED, or unfinished), the
-stage runs now, in this process, into the same store (by the `train` function the caller
-hands in: `orchestrator.build.train_stage`). A sweep resolves its points' needs once, before
-the points (`orchestrator.sweep`), so they all find the same stages.
+invalidates everything below it), the contents of the character file and of every clip (not
+only their paths) and the code's version (`tracking.stage_code`: the package's version, or the
+git commit; `orchestrator.provenance`), and nothing that does not change the result (`run_dir`,
+`progress`, `tracking`, `preset`, how the runtime is hosted).
+
+Resolving a need looks for a FINISHED run with that hash in the run's own experiment and in
+those `tracking.reuse_from` names (never, unless it says "*", in any experiment of a shared
+store: anyone who can write to the store could otherwise plant a run with a hash that public
+configs predict): found, it is reused, its artifacts downloaded, and its provenance (run,
+experiment, user, git commit) recorded as tags on the run that reuses it; not found (or only
+FAILED, or unfinished), the stage runs now, in this process, into the same store (by the
+`train` function the caller hands in: `orchestrator.build.train_stage`). Every spec of the
+whole chain is composed and checked (`plan`) before any stage trains. A sweep resolves its
+points' needs once, before the points (`orchestrator.sweep`), so they all find the same stages.
 
 The hash names the method by `algo.name`, never by the module path of its class
 (`algo._target_`), so that method modules can move without orphaning stored stages. (Stages
@@ -37,10 +44,11 @@ from typing import Any
 from omegaconf import OmegaConf
 
 from orchestrator import checkpoint
-from orchestrator.compose import compose, validate
+from orchestrator.compose import CONF_DIR, compose, validate
+from orchestrator.provenance import code_version, inputs_digest
 from orchestrator.schema import Config, ConfigError
 from orchestrator.tracking.query import find_finished
-from orchestrator.upstream import Upstream, existing_run, short_error
+from orchestrator.upstream import Upstream, existing_run, provenance, short_error
 
 # Trains a stage's config with its resolved upstream stages under its stage hash; returns its run id.
 TrainStage = Callable[[Config, dict[str, Upstream], str], str]
@@ -63,6 +71,8 @@ def config_hash(cfg: Config, upstream: dict[str, str] | None = None) -> str:
     # The method is named by algo.name; its class's module path (_target_) is where code lives, not what it computes.
     d["algo"] = {k: v for k, v in d["algo"].items() if v is not None and k != "_target_"}
     d["algo"]["needs"] = dict(sorted((upstream or {}).items()))
+    d["inputs"] = inputs_digest(cfg.character.xml, cfg.motion.clips)
+    d["code"] = code_version(cfg.tracking.stage_code)
     blob = json.dumps(d, sort_keys=True, default=str)
     return hashlib.sha256(blob.encode()).hexdigest()[:20]
 
@@ -75,10 +85,15 @@ def upstream_config(cfg: Config, spec: str, role: str) -> Config:
     bad = [o for o in overrides if "=" not in o or o.startswith(("+", "~"))]
     if bad:
         raise ConfigError(f"algo.needs.{role}: {bad[0]!r} is not a key=value override of the {name} stage")
+    methods = sorted(p.stem for p in (CONF_DIR / "algo").glob("*.yaml"))
+    if name not in methods:
+        raise ConfigError(
+            f"algo.needs.{role}: cannot compose stage {spec!r}: no method {name!r} ({', '.join(methods)})"
+        )
     try:
         base = compose([f"algo={name}", f"scale={cfg.scale_name}"])
     except Exception as e:
-        raise ConfigError(f"algo.needs.{role}: cannot compose stage {spec!r} ({e})") from None
+        raise ConfigError(f"algo.needs.{role}: cannot compose stage {spec!r} ({short_error(e)})") from None
     shared = {k: OmegaConf.structured(getattr(cfg, k)) if k in SECTIONS_SHARED else getattr(cfg, k) for k in SHARED}
     shared["stage_overrides"] = OmegaConf.create(cfg.stage_overrides)
     OmegaConf.set_struct(base, False)  # the shared stage_overrides and needs may add keys; validate checks them
@@ -89,8 +104,30 @@ def upstream_config(cfg: Config, spec: str, role: str) -> Config:
         raise ConfigError(f"algo.needs.{role} ({spec}): {short_error(e)}") from None
 
 
+def plan(cfg: Config, seen: tuple[str, ...] = ()) -> None:
+    """Compose every stage of `cfg`'s chain (ConfigError naming the first spec that cannot be), before any
+    stage is looked up or trained; a spec that comes back to one above it is refused too."""
+    for role, spec in cfg.algo.needs.items():
+        if RUN_ID.fullmatch(spec.strip()):
+            continue
+        name = spec.split()[0] if spec.split() else spec
+        if name in seen:
+            raise ConfigError(f"algo.needs.{role}: stage {spec!r} needs itself (through {' -> '.join(seen)})")
+        plan(upstream_config(cfg, spec, role), (*seen, cfg.algo.name))
+
+
+def trusted_experiments(cfg: Config, experiment: str) -> list[str]:
+    """Where this run may reuse stages from: its own experiment and `tracking.reuse_from` ("*": any)."""
+    return [experiment, *cfg.tracking.reuse_from]
+
+
 def resolve(cfg: Config, uri: str, workdir: Path, experiment: str, train: TrainStage, log=print) -> dict[str, Upstream]:
     """Every need of `cfg`, reused from the store or trained now by `train` (upstream first); role → Upstream."""
+    plan(cfg)
+    return _resolve(cfg, uri, workdir, experiment, train, log)
+
+
+def _resolve(cfg: Config, uri: str, workdir: Path, experiment: str, train: TrainStage, log) -> dict[str, Upstream]:
     return {
         role: ensure(role, spec, cfg, uri, workdir, experiment, train, log) for role, spec in cfg.algo.needs.items()
     }
@@ -104,15 +141,20 @@ def ensure(
     if run_id:
         return existing_run(role, run_id.group(1), uri, cache)
     up = upstream_config(cfg, spec, role)
-    above = resolve(up, uri, workdir, experiment, train, log)
+    above = _resolve(up, uri, workdir, experiment, train, log)
     h = config_hash(up, {r: u.stage_hash for r, u in above.items()})
     lineage = {r: u.run_id for r, u in above.items()}
     for r, u in above.items():
         lineage.update({f"{r}.{k}": v for k, v in u.lineage.items()})
-    found = find_finished(uri, h)
+    trusted = trusted_experiments(cfg, experiment)
+    found = find_finished(uri, h, trusted)
     if found:
-        log(f"stage {role}: reusing {up.algo.name} run {found} (hash {h})")
-        return Upstream(role, up.algo.name, found, h, uri, cache, True, lineage)
+        origin = provenance(role, uri, found)
+        log(
+            f"stage {role}: reusing {up.algo.name} run {found} (hash {h}) of experiment {origin['experiment']!r}, "
+            f"user {origin['user']}, commit {origin['git_commit'][:12]}"
+        )
+        return Upstream(role, up.algo.name, found, h, uri, cache, True, lineage, origin)
     up.run_dir = str(workdir / "stages" / f"{up.algo.name}-{h[:8]}")
     # A stage cut short here before (its run FAILED or never ended) continues from its last checkpoint.
     up.resume = checkpoint.latest(Path(up.run_dir) / "checkpoints") is not None
@@ -120,17 +162,21 @@ def ensure(
     up.tracking.experiment = experiment
     up.tracking.run_name = f"{up.algo.name} stage {h[:8]}"
     how = "resuming it from its last checkpoint" if up.resume else "training it"
-    log(f"stage {role}: no finished {up.algo.name} run with hash {h} in {uri}; {how} in {up.run_dir}")
+    named = ", ".join(repr(e) for e in dict.fromkeys(trusted))
+    where = "any experiment" if "*" in trusted else f"experiment(s) {named}"
+    log(f"stage {role}: no finished {up.algo.name} run with hash {h} in {where} of {uri}; {how} in {up.run_dir}")
     new_id = train(up, above, h)
-    return Upstream(role, up.algo.name, new_id, h, uri, cache, False, lineage)
+    return Upstream(role, up.algo.name, new_id, h, uri, cache, False, lineage, provenance(role, uri, new_id))
 
 
 def lineage_tags(upstream: dict[str, Upstream]) -> dict[str, str]:
-    """Tags that say which stages a run used: upstream.<role>[.<role>...] = run id, and expert_run_id."""
+    """Tags that say which stages a run used: upstream.<role>[.<role>...] = run id, where each stage it used
+    directly came from (upstream.<role>.experiment, .user, .git_commit), and expert_run_id."""
     tags: dict[str, str] = {}
     for role, u in upstream.items():
         tags[f"upstream.{role}"] = u.run_id
         tags[f"upstream.{role}.reused"] = str(u.reused).lower()
+        tags.update({f"upstream.{role}.{k}": v for k, v in u.provenance.items()})
         tags.update({f"upstream.{role}.{k}": v for k, v in u.lineage.items()})
     for key, value in list(tags.items()):
         if key == "upstream.expert" or key.endswith(".expert"):

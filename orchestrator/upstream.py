@@ -45,9 +45,10 @@ class Upstream:
     run_id: str
     stage_hash: str
     uri: str
-    cache: Path  # where its artifacts are downloaded
+    cache: Path  # its artifacts are downloaded under cache/<run id> (never served to another run)
     reused: bool  # found finished in the store, not run for this one
     lineage: dict[str, str] = field(default_factory=dict)  # "demos.expert" -> run id, for every stage above
+    provenance: dict[str, str] = field(default_factory=dict)  # its run's experiment, user and git commit
 
     def describe(self) -> str:
         return f"stage {self.role} ({self.name}, run {self.run_id})"
@@ -58,12 +59,13 @@ class Upstream:
         parts = Path(path).parts
         if not parts or Path(path).is_absolute() or ".." in parts or "\\" in path:
             raise StageError(f"{self.describe()}: artifact path {path!r} is refused (absolute, empty or with '..')")
-        local = self.cache / path
+        folder = self.cache / self.run_id
+        local = folder / path
         if local.exists():
             return local
-        self.cache.mkdir(parents=True, exist_ok=True)
+        folder.mkdir(parents=True, exist_ok=True)
         try:
-            out = query.download_artifact(self.uri, self.run_id, path, self.cache)
+            out = query.download_artifact(self.uri, self.run_id, path, folder)
         except Exception as e:
             hint = ""
             if "mlflow-artifacts" in str(e):
@@ -76,9 +78,10 @@ class Upstream:
         return out
 
     def config(self) -> Config:
+        """The stage's config (`config.json`); a method class it names is imported only if it is one we ship."""
         path = self.artifact("config.json")
         try:
-            return validate(json.loads(path.read_text()))
+            return validate(json.loads(path.read_text()), shipped_only=True)
         except (json.JSONDecodeError, ConfigError) as e:
             raise StageError(f"{self.describe()}: artifact config.json is unreadable ({short_error(e)})") from None
 
@@ -117,10 +120,20 @@ def existing_run(role: str, run_id: str, uri: str, cache: Path) -> Upstream:
     lineage = {
         k.removeprefix("upstream."): v
         for k, v in tags.items()
-        if k.startswith("upstream.") and not k.endswith(".reused")
+        if k.startswith("upstream.") and k.rpartition(".")[2] not in ("reused", *query.PROVENANCE)
     }
     name = tags.get("algo", "?")
-    return Upstream(role, name, run_id, tags.get("stage_hash", run_id), uri, cache, True, lineage)
+    return Upstream(
+        role, name, run_id, tags.get("stage_hash", run_id), uri, cache, True, lineage, provenance(role, uri, run_id)
+    )
+
+
+def provenance(role: str, uri: str, run_id: str) -> dict[str, str]:
+    """Where stage `role`'s run came from (`tracking.query.run_provenance`); a StageError if the store cannot say."""
+    try:
+        return query.run_provenance(uri, run_id)
+    except Exception as e:
+        raise StageError(f"stage {role}: cannot read run {run_id} in {uri} ({short_error(e)})") from None
 
 
 def expert_weights(up: Upstream) -> Weights:

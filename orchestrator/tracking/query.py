@@ -1,9 +1,10 @@
 """The store's runs, read back and touched outside a run's own logger: every `MlflowClient` call of the service.
 
-A finished stage's artifacts, metrics and tags (`orchestrator.upstream`), the newest finished run with a
-stage hash (`orchestrator.stages`), a run's artifact root (the closing summary), a sweep's children
-and their histories (`orchestrator.sweep`), a sweep's experiment and its parent run's end, a run's
-metric steps (`orchestrator.bench.chaos`).
+A finished stage's artifacts, metrics, tags and provenance (`orchestrator.upstream`), the newest finished
+run with a stage hash in the experiments a run trusts (`orchestrator.stages`), whether a resumed run is
+still in the store (`orchestrator.preflight`), a run's artifact root (the closing summary), a sweep's
+children and their histories (`orchestrator.sweep`), a sweep's experiment and its parent run's end, a
+run's metric steps (`orchestrator.bench.chaos`).
 """
 
 from __future__ import annotations
@@ -36,24 +37,56 @@ def run_status_and_tags(uri: str, run_id: str) -> tuple[str, dict[str, str]]:
     return r.info.status, dict(r.data.tags)
 
 
+def run_exists(uri: str, run_id: str) -> bool | None:
+    """Whether the store has run `run_id` (a deleted run it keeps for undeletion counts as gone); None when the
+    store does not answer (MLflow's requests time out after 3 s, `orchestrator.tracking.spool`)."""
+    from orchestrator.tracking.spool import refused  # sets MLflow's request timeout and retries for the process
+
+    try:
+        return MlflowClient(uri).get_run(run_id).info.lifecycle_stage != "deleted"
+    except Exception as e:
+        return False if refused(e) else None
+
+
 def artifact_root(uri: str, run_id: str) -> str:
     """Where the run's artifacts are (a local directory for a SQLite store)."""
     return MlflowClient(uri).get_run(run_id).info.artifact_uri.removeprefix("file://")
 
 
-def find_finished(uri: str, stage_hash: str) -> str | None:
-    """The newest FINISHED run with this stage hash, in any experiment of the store."""
+def find_finished(uri: str, stage_hash: str, experiments: list[str]) -> str | None:
+    """The newest FINISHED run with this stage hash in the named experiments ("*": any experiment of the store;
+    names the store does not have are skipped)."""
     client = MlflowClient(uri)
-    experiments = [e.experiment_id for e in client.search_experiments()]
-    if not experiments:
+    if "*" in experiments:
+        ids = [e.experiment_id for e in client.search_experiments()]
+    else:
+        found = (client.get_experiment_by_name(name) for name in dict.fromkeys(experiments))
+        ids = [e.experiment_id for e in found if e is not None]
+    if not ids:
         return None
     runs = client.search_runs(
-        experiments,
+        ids,
         filter_string=f"tags.stage_hash = '{stage_hash}' and attributes.status = 'FINISHED'",
         order_by=["attributes.start_time DESC"],
         max_results=1,
     )
     return runs[0].info.run_id if runs else None
+
+
+# What `run_provenance` says of a run.
+PROVENANCE = ("experiment", "user", "git_commit")
+
+
+def run_provenance(uri: str, run_id: str) -> dict[str, str]:
+    """Who made run `run_id`, where and with what code: its experiment's name, its user and its git commit."""
+    client = MlflowClient(uri)
+    r = client.get_run(run_id)
+    experiment = client.get_experiment(r.info.experiment_id)
+    return {
+        "experiment": experiment.name if experiment else r.info.experiment_id,
+        "user": r.data.tags.get("mlflow.user") or r.info.user_id or "unknown",
+        "git_commit": r.data.tags.get("git_commit", "unknown"),
+    }
 
 
 def metric_steps(uri: str, run_id: str, key: str) -> list[int]:

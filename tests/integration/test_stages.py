@@ -227,10 +227,10 @@ def test_only_a_finished_run_is_reused(pipeline):
         r = client.create_run(experiment, tags={"stage_hash": "h-test", "algo": "tracker"})
         client.set_terminated(r.info.run_id, status)
     client.create_run(experiment, tags={"stage_hash": "h-test", "algo": "tracker"})  # still RUNNING
-    assert find_finished(uri, "h-test") is None
+    assert find_finished(uri, "h-test", ["default"]) is None
     done = client.create_run(experiment, tags={"stage_hash": "h-test", "algo": "tracker"})
     client.set_terminated(done.info.run_id, "FINISHED")
-    assert find_finished(uri, "h-test") == done.info.run_id
+    assert find_finished(uri, "h-test", ["default"]) == done.info.run_id
 
 
 def test_a_controlvae_posterior_can_be_the_expert(pipeline):

@@ -15,8 +15,8 @@ def test_an_artifact_path_that_leaves_the_cache_is_refused_before_any_download(t
     assert not (tmp_path / "cache").exists()  # nothing was created or fetched
 
 
-def test_a_plain_artifact_path_is_read_from_the_cache(tmp_path):
+def test_a_plain_artifact_path_is_read_from_the_runs_own_cache(tmp_path):
     stage = Upstream("expert", "tracker", "run123", "hash", "sqlite:///nowhere.db", tmp_path, True)
-    (tmp_path / "checkpoints").mkdir()
-    (tmp_path / "checkpoints" / "ckpt-1.pt").write_bytes(b"x")
-    assert stage.artifact("checkpoints/ckpt-1.pt") == tmp_path / "checkpoints" / "ckpt-1.pt"
+    (tmp_path / "run123" / "checkpoints").mkdir(parents=True)
+    (tmp_path / "run123" / "checkpoints" / "ckpt-1.pt").write_bytes(b"x")
+    assert stage.artifact("checkpoints/ckpt-1.pt") == tmp_path / "run123" / "checkpoints" / "ckpt-1.pt"

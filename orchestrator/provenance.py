@@ -1,0 +1,74 @@
+"""Where a result came from: the code that computed it and the contents of the files it read.
+
+A stage is reused by its hash (`orchestrator.stages`), so the hash must change whenever what decides
+the result does, including the inputs a config names only by path:
+
+- `inputs_digest(cfg)`: SHA-256 of the character file and of every clip file, by content (a clip
+  edited in place, or another file at the same path, is a different stage);
+- `code_version(how)`: the package's version ("version", the default), or the git commit of the
+  checkout ("commit": every commit retrains every stage); see the README's section on stages;
+- `git_commit()`: the checkout's commit, recorded as a tag on every run.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import subprocess
+from functools import lru_cache
+from importlib import metadata
+from pathlib import Path
+
+from workers.body.character import HUMANOID_XML
+from workers.motion.formats import resolve
+
+PACKAGE = "mocap-orchestrator"
+CODE_VERSIONS = ("version", "commit")
+
+
+def git_commit() -> str:
+    """The commit of the checkout this code runs from, "unknown" outside one."""
+    try:
+        out = subprocess.run(
+            ["git", "rev-parse", "HEAD"],
+            capture_output=True,
+            text=True,
+            timeout=5,
+            cwd=Path(__file__).resolve().parent,
+        )
+        return out.stdout.strip() or "unknown"
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+
+
+def code_version(how: str = "version") -> str:
+    """What of the code a stage hash covers: the package's version, or with "commit" the git commit."""
+    if how == "commit":
+        return f"commit {git_commit()}"
+    try:
+        return f"{PACKAGE} {metadata.version(PACKAGE)}"
+    except metadata.PackageNotFoundError:
+        return f"{PACKAGE} unknown"
+
+
+def file_digest(path: str | Path) -> str:
+    """SHA-256 of the file's bytes (remembered while its size and modification time stay the same)."""
+    p = Path(path).resolve()
+    st = p.stat()
+    return _digest(str(p), st.st_size, st.st_mtime_ns)
+
+
+@lru_cache(maxsize=1024)
+def _digest(path: str, size: int, mtime_ns: int) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def inputs_digest(character_xml: str | None, clips: list[str]) -> dict[str, object]:
+    """The contents of what a run reads by path: the character file and each clip, as SHA-256 digests."""
+    return {
+        "character": file_digest(character_xml or HUMANOID_XML),
+        "clips": [file_digest(resolve(c)) for c in clips],
+    }
