@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import json
 import socket
-import subprocess
 import sys
 from dataclasses import asdict
 from pathlib import Path
@@ -21,6 +20,7 @@ from omegaconf import OmegaConf
 
 from orchestrator import checkpoint, preflight, stages
 from orchestrator.console import closing, where_to_watch
+from orchestrator.provenance import git_commit
 from orchestrator.runtime.base import Runtime
 from orchestrator.schema import Config
 from orchestrator.tracking.base import NoOpLogger, RunLogger, flatten
@@ -32,14 +32,6 @@ from orchestrator.world import load_character, load_character_and_library
 
 def _log(message: str) -> None:
     print(message, file=sys.stderr, flush=True)
-
-
-def git_commit() -> str:
-    try:
-        out = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True, timeout=5)
-        return out.stdout.strip() or "unknown"
-    except (OSError, subprocess.SubprocessError):
-        return "unknown"
 
 
 def build_logger(
@@ -122,6 +114,11 @@ def run(
     run_file = run_dir / checkpoint.RUN_FILE
     resume_from = checkpoint.latest(run_dir / "checkpoints") if cfg.resume else None
     run_id = json.loads(run_file.read_text())["run_id"] if cfg.resume and run_file.exists() else None
+    if run_id and cfg.tracking.enabled and preflight.missing_run(cfg, run_id):
+        # A stage cut short whose run the store lost (a command's own run is refused by `preflight.check`):
+        # made again whole, params and config, and continued from its checkpoint.
+        _log(f"resume: run {run_id} is not in the store; a new run continues it from its last checkpoint")
+        run_id = None
     if resume_from is not None:  # a checkpoint that does not fit is refused before the run is reopened
         preflight.resume_checkpoint(cfg, character)
     if cfg.resume and resume_from is None:

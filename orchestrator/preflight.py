@@ -9,16 +9,20 @@ anything is written to the run directory, so that bad input leaves everything al
 - `tracking.uri` has a scheme MLflow knows (checked at composition too; a sweep point takes its parent's);
 - `runtime.address` answers within `runtime.connect_timeout_s` (runtime=ray);
 - a GPU asked for (`runtime.learner_device=cuda`, `runtime.learner_gpus`) is one this machine has (the
-  local runtime, or a Ray started for the run; a cluster's GPUs are counted when Ray reserves them);
-- with `resume=true`, the last checkpoint in the run directory is complete, a weights file, written by
-  this method, and fits this config's networks: its states are loaded into the method's components built
-  here (for methods without upstream stages; those that have them are checked when the trainer restores).
+  local runtime, or a Ray started for the run) or, at a cluster's `runtime.address`, one the cluster has;
+- every stage spec of the chain of upstream stages composes (`stages.plan`), and `motion.joint_map`
+  names bodies of the character;
+- with `resume=true`, the run in run.json is still in the store, and the last checkpoint in the run
+  directory is complete, a weights file, written by this method, and fits this config's networks: its
+  states are loaded into the method's components built here (for methods without upstream stages;
+  those that have them are checked when the trainer restores).
 """
 
 from __future__ import annotations
 
 import json
 from pathlib import Path
+from urllib.parse import urlsplit, urlunsplit
 
 import torch
 
@@ -26,9 +30,9 @@ from orchestrator import checkpoint
 from orchestrator.algos.base import method_class
 from orchestrator.runtime.base import uses_ray
 from orchestrator.schema import Config, ConfigError
-from orchestrator.tracking.uri import tracking_uri_error
+from orchestrator.tracking.uri import store_uri, tracking_uri_error
 from orchestrator.trainer import LoopState
-from orchestrator.world import load_character_and_library
+from orchestrator.world import load_character, load_library
 from workers.body.character import Character, CharacterError
 from workers.motion.errors import ClipError
 
@@ -44,6 +48,10 @@ def check(cfg: Config) -> None:
         if problem:
             raise ConfigError(f"tracking.uri: {problem}")
     learner_devices(cfg)
+    if cfg.algo.needs:
+        from orchestrator.stages import plan  # loads mlflow: only for a method with upstream stages
+
+        plan(cfg)  # every stage spec of the chain composes, before any stage trains
     character = character_and_clips(cfg)
     if cfg.runtime.address and cfg.runtime._target_.endswith("RayRuntime"):
         from orchestrator.runtime.ray import AddressError, check_address
@@ -72,21 +80,59 @@ def learner_devices(cfg: Config) -> None:
             "runtime.learner_device=cuda: a learner actor on the cluster at runtime.address sees only the GPUs Ray "
             "assigns it; set runtime.learner_gpus (e.g. 1)"
         )
+    if not here and r.learner_gpus > 0:
+        cluster_gpus(cfg)
+
+
+def cluster_gpus(cfg: Config) -> None:
+    """ConfigError when a learner asks for more GPUs than the Ray cluster at runtime.address has in all (Ray
+    would wait for them without end), asked by connecting as a client, which starts nothing there. (Learners
+    that each fit but not all together are refused when Ray is asked to reserve them, `RayRuntime.reserve`.)"""
+    import ray
+
+    from orchestrator.runtime.ray import AddressError, check_address
+
+    r = cfg.runtime
+    try:
+        check_address(r.address, r.connect_timeout_s)
+    except AddressError as e:
+        raise InputError(str(e)) from None
+    ray.init(address=r.address, log_to_driver=False, logging_level="ERROR")
+    try:
+        have = ray.cluster_resources().get("GPU", 0.0)
+    finally:
+        ray.shutdown()
+    if r.learner_gpus > have:
+        raise ConfigError(
+            f"runtime.learner_gpus={r.learner_gpus:g}: the Ray cluster at runtime.address={r.address} has "
+            f"{have:g} GPU(s)"
+        )
 
 
 def character_and_clips(cfg: Config) -> Character:
-    """The character and the motion library load (the library is built, and its clips cached, here)."""
+    """The character and the motion library load (the library is built, and its clips cached, here), and
+    `motion.joint_map` maps onto bodies the character has (whether or not a clip is a BVH file)."""
     try:
-        character, _ = load_character_and_library(cfg)
+        character = load_character(cfg)
     except CharacterError as e:
         raise InputError(f"character.xml={cfg.character.xml}: {e.message}") from None
+    for source, body in (cfg.motion.joint_map or {}).items():
+        if body not in character.body_names:
+            raise ConfigError(
+                f"motion.joint_map.{source}: {body!r} is not a body of the character "
+                f"(its bodies: {', '.join(character.body_names)})"
+            )
+    try:
+        load_library(cfg, character)
     except ClipError as e:
         raise InputError(f"clip {e}") from None
     return character
 
 
 def resume_run(cfg: Config) -> str | None:
-    """The MLflow run a resume continues (run_dir/run.json), or None; InputError if the file is unreadable."""
+    """The MLflow run a resume continues (run_dir/run.json), or None; InputError if the file is unreadable, or if
+    it names a run that the store answers it does not have (deleted, or another store): continuing would make a
+    new run without the params and config of the one it resumes."""
     path = Path(cfg.run_dir) / checkpoint.RUN_FILE
     if not path.exists():
         return None
@@ -96,7 +142,27 @@ def resume_run(cfg: Config) -> str | None:
         run_id = False
     if not (run_id is None or isinstance(run_id, str)):  # None: the run was not tracked
         raise InputError(f'{path}: not a run file ({{"run_id": "<MLflow run id>"}}); resume=true reads it')
+    if run_id and cfg.tracking.enabled and missing_run(cfg, run_id):
+        raise InputError(
+            f"{path}: run {run_id} is not in the store {_no_password(store_uri(cfg.tracking.uri, cfg.run_dir))} "
+            "(deleted, or another tracking.uri); resume=true would continue it. Give the store that has it, or "
+            "move run.json aside to start a new run from the last checkpoint"
+        )
     return run_id
+
+
+def _no_password(uri: str) -> str:
+    parts = urlsplit(uri)
+    if parts.password is None:
+        return uri
+    return urlunsplit(parts._replace(netloc=parts.netloc.replace(f":{parts.password}@", ":***@", 1)))
+
+
+def missing_run(cfg: Config, run_id: str) -> bool:
+    """True when the run's store answers that it does not have `run_id` (False when it has it or does not answer)."""
+    from orchestrator.tracking.query import run_exists  # loads mlflow: only when tracking
+
+    return run_exists(store_uri(cfg.tracking.uri, cfg.run_dir), run_id) is False
 
 
 def resume_checkpoint(cfg: Config, character: Character) -> Path | None:

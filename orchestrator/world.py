@@ -34,7 +34,7 @@ def load_library(cfg: Config, character: Character) -> MotionLibrary:
         fps=cfg.character.control_hz,
         mirror=cfg.motion.mirror,
         cache_dir=cfg.motion.cache_dir,
-        joint_map=dict(cfg.motion.joint_map) or None,
+        joint_map=dict(cfg.motion.joint_map or {}) or None,
     )
 
 

@@ -229,3 +229,24 @@ def test_a_sweep_on_the_cluster_puts_its_parent_and_children_in_postgres(cluster
     stored = Path(cluster.state["mlflow"]["artifacts"]) / str(experiment_id) / parent_id / "artifacts"
     assert {"comparison.md", "comparison.json", "comparison.png"} <= {p.name for p in stored.iterdir()}
     assert "| 10.0 | 1 |" in (stored / "comparison.md").read_text()
+
+
+def test_a_gpu_the_cluster_does_not_have_is_refused_before_anything_is_written(cluster, tmp_path):
+    """The cluster has no GPU: asking one for each learner is one line naming the key and what the cluster has,
+    before an MLflow run is made or the run directory is written (Ray would wait for it without end)."""
+    address = cluster.state["ray"]["head"]["gcs_address"]
+    args = [f"runtime.address={address}", "runtime.learner_gpus=1", f"tracking.uri={cluster.tracking_uri}"]
+    args += ["runtime=ray", "scale=smoke", "motion=walk", "progress=false", f"run_dir={tmp_path / 'run'}"]
+    args += ["tracking.experiment=gpu-refusal"]
+    proc = subprocess.run(
+        [sys.executable, "-m", "orchestrator", *args], cwd=tmp_path, env=cluster.env, capture_output=True, text=True
+    )
+    lines = proc.stderr.strip().splitlines()
+    assert proc.returncode == 2 and len(lines) == 1, proc.stderr[-2000:]
+    assert (
+        lines[0] == f"config error: runtime.learner_gpus=1: the Ray cluster at runtime.address={address} has 0 GPU(s)"
+    )
+    assert not (tmp_path / "run").exists()
+    with cluster.db() as cur:
+        cur.execute("SELECT count(*) FROM experiments WHERE name = 'gpu-refusal'")
+        assert cur.fetchone()[0] == 0

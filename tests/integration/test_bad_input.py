@@ -362,3 +362,45 @@ def test_a_gpu_that_is_not_there_is_refused_before_anything_starts(tmp_path, cap
     line = assert_refused(tmp_path, code, err, key, "no GPU on this machine")
     assert line.startswith("config error: ")
     assert not (tmp_path / "run").exists()  # nothing written, no Ray started, no run in a store
+
+
+# i. Stage specs, joint maps and resumed runs, refused before anything runs ----------------------------------
+def test_a_bad_stage_spec_anywhere_in_the_chain_is_refused_before_any_stage_trains(tmp_path, capsys):
+    """physicsvae needs demos (from a tracker) and then a world_model stage: its broken need would be met only
+    after the tracker and the demos had trained."""
+    code, err = run_main(
+        tmp_path, capsys, "motion=walk", "algo=physicsvae", '+stage_overrides.world_model=["algo.needs.demos=nosuch"]'
+    )
+    line = assert_refused(tmp_path, code, err, "algo.needs.demos", "'nosuch'")
+    assert line.startswith("config error: ")
+    assert not (tmp_path / "run").exists()
+
+
+def test_a_joint_map_onto_a_body_we_do_not_have_is_refused_and_the_readmes_override_composes(tmp_path, capsys):
+    code, err = run_main(tmp_path, capsys, "motion=walk", "motion.joint_map={Hips: pelvis}")
+    line = assert_refused(tmp_path, code, err, "motion.joint_map.Hips", "'pelvis' is not a body of the character")
+    assert line.startswith("config error: ") and "root" in line  # the bodies it has are listed
+    assert not (tmp_path / "run").exists()
+    cfg = compose_smoke(tmp_path / "run", tmp_path / "cache", "motion.joint_map={Hips: root, LeftUpLeg: left_hip}")
+    assert dict(_plain(cfg)["motion"]["joint_map"]) == {"Hips": "root", "LeftUpLeg": "left_hip"}
+
+
+@pytest.mark.parametrize("gone", ["deleted", "never there"])
+def test_resuming_a_run_the_store_does_not_have_is_refused(tmp_path, capsys, gone):
+    from mlflow.tracking import MlflowClient
+
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    uri = f"sqlite:///{tmp_path / 'store.db'}"
+    client = MlflowClient(uri)
+    run_id = client.create_run(client.create_experiment("e", artifact_location=str(tmp_path / "a"))).info.run_id
+    if gone == "deleted":
+        client.delete_run(run_id)
+    else:
+        run_id = "0" * 32
+    (run_dir / "run.json").write_text(json.dumps({"run_id": run_id}))
+    code, err = run_main(tmp_path, capsys, "motion=walk", "resume=true", f"tracking.uri={uri}", run_dir=run_dir)
+    line = assert_refused(tmp_path, code, err, str(run_dir / "run.json"), run_id, "is not in the store")
+    assert "sqlite:///" in line
+    assert sorted(p.name for p in run_dir.iterdir()) == ["run.json"]
+    assert len(client.search_runs([client.get_experiment_by_name("e").experiment_id], run_view_type=3)) == 1
