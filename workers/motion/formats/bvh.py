@@ -39,9 +39,11 @@ components of the OFFSET. It then retargets onto our character:
   reference model's are 0.88 m, hip to sole), so without it the feet float or sink by
   the difference over the whole clip. `ground=None` keeps the file's heights.
 
-`scale` (metres per file unit) defaults to a guess from the rest pose's height: the
-unit of UNITS (metres, centimetres, millimetres, inches, CMU's 1/0.45 inch) that makes
-it closest to a person's 1.7 m. Other sizes or units need an explicit `scale`.
+`scale` (metres per file unit) defaults to a guess from the legs' bone lengths (hip to
+knee to ankle, whatever the rest pose's orientation): the unit of UNITS (metres,
+centimetres, millimetres, inches, CMU's 1/0.45 inch) that makes them closest to a
+person's 0.85 m; a leg that is no human leg in any of them is a ClipError naming the
+file. Other sizes or units need an explicit `scale`.
 """
 
 from __future__ import annotations
@@ -65,9 +67,12 @@ log = logging.getLogger(__name__)
 
 SAVE_UNITS_PER_METRE = 100.0  # `save` writes centimetres
 SAVE_ROTATION_ORDER = "ZXY"
-# Units a file may be in (metres per unit) and the height guess_scale expects of a person.
+# Units a file may be in (metres per unit), the leg (hip to knee to ankle) guess_scale expects of a
+# person (ours 0.83 m, LaFAN1's 0.86, CMU 01_14's 0.84) and the legs it accepts (a child's to a tall
+# adult's, with room for the 1.6x between centimetres and inches).
 UNITS = {"metres": 1.0, "centimetres": 0.01, "millimetres": 0.001, "inches": 0.0254, "CMU units": 0.0254 / 0.45}
-PERSON_HEIGHT = 1.7
+PERSON_LEG = 0.85
+LEG_RANGE = (0.4, 1.4)
 # A first frame from which some joint turns by more than this (radians) to the next, and by four
 # times the 95th percentile of the clip's largest turn a frame, is a pose put before the motion
 # (the cgspeed CMU conversion starts each file with its rest pose).
@@ -301,12 +306,32 @@ def rest_positions(joints: list[Joint]) -> np.ndarray:
     return out
 
 
-def guess_scale(heights: np.ndarray) -> float:
-    """Metres per file unit from the rest pose's vertical extent: the UNITS entry closest to a person's height."""
-    span = float(np.ptp(heights))
-    if span <= 0.0:
-        return 1.0
-    return min(UNITS.values(), key=lambda unit: abs(np.log(span * unit / PERSON_HEIGHT)))
+def leg_length(rest: np.ndarray, src: dict) -> float | None:
+    """Hip to knee to ankle (file units) of the source's rest pose, mean over the sides; None without a leg."""
+    legs = [
+        np.linalg.norm(rest[src[f"{s}_knee"]] - rest[src[f"{s}_hip"]])
+        + np.linalg.norm(rest[src[f"{s}_ankle"]] - rest[src[f"{s}_knee"]])
+        for s in ("left", "right")
+        if {f"{s}_hip", f"{s}_knee", f"{s}_ankle"} <= set(src)
+    ]
+    return float(np.mean(legs)) if legs else None
+
+
+def guess_scale(path: Path, leg: float) -> float:
+    """Metres per file unit: the UNITS entry that makes a leg (hip to ankle) closest to a person's PERSON_LEG.
+
+    Bone lengths do not depend on how the rest pose stands (upright, T-pose, or LaFAN1's, every bone
+    along its joint's x axis). A leg outside LEG_RANGE in every unit is a ClipError naming the file.
+    """
+    best = min(UNITS, key=lambda unit: abs(np.log(max(leg, 1e-12) * UNITS[unit] / PERSON_LEG)))
+    if not LEG_RANGE[0] <= leg * UNITS[best] <= LEG_RANGE[1]:
+        raise ClipError(
+            path,
+            f"cannot tell the file's unit: its legs (hip to knee to ankle) are {leg:.4g} units long, a human "
+            f"leg ({LEG_RANGE[0]}-{LEG_RANGE[1]} m) in none of {', '.join(UNITS)}; convert it to one of "
+            "them (or call workers.motion.formats.bvh.load with scale=, metres per unit)",
+        )
+    return UNITS[best]
 
 
 def _starts_with_rest_frame(g_mat: np.ndarray) -> bool:
@@ -332,7 +357,7 @@ def load(
 
     joint_map: source joint name -> our body name (case-insensitive), added to (and overriding)
       the naming conventions of `bvh_names`.
-    scale: metres per file unit; guessed from the skeleton's height when None.
+    scale: metres per file unit; guessed from the legs' bone lengths when None (guess_scale).
     up: "y" for the usual y-up files (x forward, z right), "z" for files in our axes.
     ground: the height (m) for the clip's ground contact (see the module doc); None keeps the file's.
     """
@@ -346,10 +371,6 @@ def load(
         log.info("%s: frame 0 is a pose put before the motion (as in the cgspeed CMU files); dropped", path)
         frames, g_mat, g_pos = frames[1:], g_mat[1:], g_pos[1:]
     rest = rest_positions(joints) @ axes.T
-    if scale is None:
-        scale = guess_scale(rest[:, 2])
-        unit = next(k for k, v in UNITS.items() if v == scale)
-        log.info("%s: read in %s (rest height %.4g units; pass scale= otherwise)", path, unit, np.ptp(rest[:, 2]))
     names, (parent, _) = character.body_names, tree(character)
     src = match_joints(path, joints, names, joint_map)
     if names[0] not in src:
@@ -360,8 +381,15 @@ def load(
         refuse_unmatched(path, joints, essential)
     for body in minor:
         log.warning("%s: no source joint maps to %s; it keeps the identity rotation", path, body)
-    g_quat = rot.from_matrix(axes @ g_mat @ axes.T)  # [T, J, 4] in our axes
-    corr = rest_corrections(character, joints, rest, src)
+    if scale is None:
+        leg = leg_length(rest, src)
+        scale = guess_scale(path, leg) if leg is not None else UNITS["metres"]
+        unit = next(k for k, v in UNITS.items() if v == scale)
+        log.info("%s: read in %s (legs %.4g units; pass scale= otherwise)", path, unit, leg or 0.0)
+    g_mat = axes @ g_mat @ axes.T  # in our axes
+    g_quat = rot.from_matrix(g_mat)  # [T, J, 4]
+    corr = rest_corrections(character, joints, rest, src, (g_mat, g_pos @ axes.T))
+    del g_mat
 
     model, n = character.model, frames.shape[0]
     qpos = np.zeros((n, model.nq))
@@ -397,6 +425,6 @@ def load(
 
 
 __all__ = [
-    "END_SITES", "UNITS", "Joint", "euler_to_matrix", "forward_kinematics", "guess_scale", "load", "match_joints",
-    "matrix_to_euler", "parse", "rest_corrections", "rest_positions", "save",
+    "END_SITES", "UNITS", "Joint", "euler_to_matrix", "forward_kinematics", "guess_scale", "leg_length", "load",
+    "match_joints", "matrix_to_euler", "parse", "rest_corrections", "rest_positions", "save",
 ]  # fmt: skip
