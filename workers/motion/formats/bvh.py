@@ -13,12 +13,13 @@ components of the OFFSET. It then retargets onto our character:
 
 * Joints are matched to our bodies by the naming conventions of Mixamo, CMU, LaFAN1,
   the mocap-bank/Biovision Collar-Shoulder-Elbow-Wrist and Hip-Knee-Ankle skeletons,
-  3ds Max bipeds, Blender and game rigs (`bvh_names`), then by the skeleton where the
-  names are ambiguous ("LeftShoulder" is the clavicle in Mixamo, the upper arm under a
-  "LeftCollar"). `joint_map` (source joint name -> our body) is applied first and
-  overrides the conventions for the bodies it names. Our root and every body driven by
-  a joint must find a source joint (else one ClipError listing them), except the neck
-  (a warning; it keeps the identity rotation).
+  3ds Max bipeds, Blender and Rigify (metarig and DEF- bones) and game rigs
+  (`bvh_names`), then by the skeleton where the names are ambiguous ("LeftShoulder" is
+  the clavicle in Mixamo, the upper arm under a "LeftCollar"). `joint_map` (source
+  joint name -> our body) is applied first and overrides the conventions for the
+  bodies it names. Our root and every body driven by a joint must find a source joint
+  (else one ClipError listing them), except the neck (a warning; it keeps the identity
+  rotation).
 * Per body, G_ours = G_source C: the source joint's global orientation and a
   rest-pose correction C, the facing alignment F (our rest frame, spine up and hips
   left to right, onto the source's) then the smallest rotation taking our rest
@@ -28,6 +29,11 @@ components of the OFFSET. It then retargets onto our character:
   has no source (for both skeletons), or, for our leaves, to the End Site (for the
   source: the mean of its children's offsets). Files from `save` import with
   identity corrections. Hinges keep the twist about their axis.
+* A bone's direction leaves its twist open, and a rest pose far from ours (LaFAN1's,
+  every bone along its joint's x axis: the legs along the spine) guesses it wrong
+  (knees bending forward, feet upside down). The limbs' twists are read from the
+  motion instead: the planes of thigh and shin, upper arm and forearm, shin and foot
+  over the clip (`bvh_retarget.limb_twists`).
 * A first frame apart from the motion (a joint turning by over 45 degrees to the next
   frame, and four times as far as the clip's frames do at the 95th percentile; the
   cgspeed CMU conversion starts each file with its rest pose) is dropped.
@@ -241,16 +247,15 @@ def parse(path: str | Path) -> tuple[list[Joint], np.ndarray, float]:
         lines = path.read_text().splitlines()
     except (OSError, UnicodeDecodeError) as e:
         raise ClipError(path, f"cannot read as text ({e})") from None
-    words = [line.split() for line in lines]
-    filled = [i for i, w in enumerate(words) if w]
-    if not filled or words[filled[0]][0].upper() != "HIERARCHY":
+    filled = [i for i, line in enumerate(lines) if line.strip()]  # words split a line at a time (long clips)
+    if not filled or lines[filled[0]].split()[0].upper() != "HIERARCHY":
         raise ClipError(path, "no HIERARCHY section (not a BVH file)")
-    motion = next((i for i in filled if words[i][0].upper() == "MOTION"), None)
+    motion = next((i for i in filled if lines[i].split(None, 1)[0].upper() == "MOTION"), None)
     if motion is None:
         raise ClipError(path, "no MOTION section")
-    joints, ncols = _parse_hierarchy(path, [t for w in words[filled[0] : motion] for t in w][1:])
+    joints, ncols = _parse_hierarchy(path, [t for line in lines[filled[0] : motion] for t in line.split()][1:])
     after = [i for i in filled if i > motion]
-    head = [" ".join(words[i]) for i in after[:2]] + ["", ""]
+    head = [" ".join(lines[i].split()) for i in after[:2]] + ["", ""]
     m_frames = re.fullmatch(r"frames\s*:\s*(\d+)", head[0], re.IGNORECASE)
     m_time = re.fullmatch(r"frame\s*time\s*:\s*(\d*\.?\d+(?:e[-+]?\d+)?)", head[1], re.IGNORECASE)
     if m_frames is None or m_time is None or float(m_time.group(1)) <= 0:
@@ -265,10 +270,11 @@ def parse(path: str | Path) -> tuple[list[Joint], np.ndarray, float]:
         log.warning("%s: %d lines after the %d declared frames ignored", path, len(data) - declared, declared)
     frames = np.empty((declared, ncols))
     for f, i in enumerate(data[:declared]):
-        if len(words[i]) != ncols:
-            raise ClipError(path, f"expected {ncols} values (the channel count), got {len(words[i])}", f)
+        words = lines[i].split()
+        if len(words) != ncols:
+            raise ClipError(path, f"expected {ncols} values (the channel count), got {len(words)}", f)
         try:
-            frames[f] = [float(w) for w in words[i]]
+            frames[f] = [float(w) for w in words]
         except ValueError as e:
             raise ClipError(path, f"non-numeric value ({e})", f) from None
     bad = ~np.isfinite(frames).all(axis=1)
@@ -386,16 +392,17 @@ def load(
         scale = guess_scale(path, leg) if leg is not None else UNITS["metres"]
         unit = next(k for k, v in UNITS.items() if v == scale)
         log.info("%s: read in %s (legs %.4g units; pass scale= otherwise)", path, unit, leg or 0.0)
-    g_mat = axes @ g_mat @ axes.T  # in our axes
-    g_quat = rot.from_matrix(g_mat)  # [T, J, 4]
-    corr = rest_corrections(character, joints, rest, src, (g_mat, g_pos @ axes.T))
+    g_rot = {j: axes @ g_mat[:, j] @ axes.T for j in sorted(set(src.values()))}  # the mapped joints', our axes
     del g_mat
+    g_quat = {j: rot.from_matrix(m) for j, m in g_rot.items()}  # [T, 4] each
+    corr = rest_corrections(character, joints, rest, src, (g_rot, g_pos @ axes.T))
+    del g_rot
 
     model, n = character.model, frames.shape[0]
     qpos = np.zeros((n, model.nq))
     qpos[:, :3] = g_pos[:, src[names[0]]] @ axes.T * scale
     glob = np.zeros((n, len(names), 4))
-    qpos[:, 3:7] = glob[:, 0] = rot.mul(g_quat[:, src[names[0]]], corr[0])
+    qpos[:, 3:7] = glob[:, 0] = rot.mul(g_quat[src[names[0]]], corr[0])
     joint_of_body = {int(b): j for j, b in enumerate(character.body_of_joint)}
     for b in range(1, len(names)):
         j, body, pg = joint_of_body.get(b), names[b], glob[:, parent[b]]
@@ -406,7 +413,7 @@ def load(
         if body not in src:  # a minor body (warned above)
             qpos[:, sl.start] = 1.0 if character.joint_types[j] == "ball" else 0.0
             continue
-        local = rot.mul(rot.conj(pg), rot.mul(g_quat[:, src[body]], corr[b]))
+        local = rot.mul(rot.conj(pg), rot.mul(g_quat[src[body]], corr[b]))
         local = np.where(local[:, :1] < 0, -local, local)
         if character.joint_types[j] == "hinge":  # keep the twist about the axis
             axis = model.jnt_axis[model.joint(character.joint_names[j]).id]

@@ -7,8 +7,8 @@ A name is read without its namespace (`mixamorig:`), case, separators, a trailin
 (the thigh's second segment: the first, `DEF-thigh.L`, comes first and is taken). Each of our
 bodies takes the first joint, in hierarchy order, of its most preferred part (PARTS):
 
-* root: Hips, Pelvis, Hip (without a side, as Daz's), Root; else the joint both thighs hang
-  from (Rigify's metarig `spine`, its deform rig's `DEF-spine`).
+* root: Hips, Pelvis, Hip (without a side, as Daz's), Root; else the spine joint both thighs
+  hang from (Rigify's metarig `spine`, its deform rig's `DEF-spine`).
 * chest: of the spine joints (Spine, Chest, LowerBack, Abdomen, ...), the last one below which
   both arms and the neck branch off: Spine2 in Mixamo and LaFAN1, Spine1 in CMU, Chest2 in
   the mocap-bank files, Chest in Bandai-Namco's. Our chest carries the arms and the neck.
@@ -52,6 +52,7 @@ CENTRAL = ("root", "chest", "neck")
 # Parts recognised with a side but matched to none of our bodies by name.
 _OTHER_LIMB_PARTS = ("shoulder", "collar", "clavicle", "toe", "toebase", "toes")
 _KNOWN_CENTRAL = {p for k in CENTRAL for p in PARTS[k]}
+_SPINE = {(None, p) for p in PARTS["chest"]}
 _KNOWN_LIMB = {p for k, v in PARTS.items() if k not in CENTRAL for p in v} | set(_OTHER_LIMB_PARTS)
 _SIDE_WORDS = {"left": "left", "right": "right", "l": "left", "r": "right"}
 # Bodies that may go without a source joint (a warning): ours carry the head, a face of a sphere.
@@ -152,7 +153,8 @@ def match_joints(path: Path, joints: list, bodies: list[str], joint_map: dict[st
         if f"{side}_elbow" in out:
             assign(f"{side}_shoulder", sided(joints[out[f"{side}_elbow"]].parent, side))
     if "root" not in out and {"left_hip", "right_hip"} <= set(out):  # Rigify: spine is the hips
-        assign("root", _common_ancestor(joints, out["left_hip"], out["right_hip"]))
+        hips = _common_ancestor(joints, out["left_hip"], out["right_hip"])
+        assign("root", hips if hips is not None and parsed[hips] in _SPINE else None)
     assign("neck", find(None, "neck"))
     spine = [j for j in real if parsed[j][0] is None and parsed[j][1] in PARTS["chest"] and j not in used]
     if "chest" in bodies and "chest" not in out:

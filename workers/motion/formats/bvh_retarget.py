@@ -66,8 +66,9 @@ def rest_corrections(
 
     joints: the source's joints (bvh.Joint: .parent, in hierarchy order); rest: their rest positions
     [J, 3] in our axes (z-up); src: our body name -> source joint index (bvh_names.match_joints);
-    motion: the source's global rotations [T, J, 3, 3] and positions [T, J, 3] in our axes, from
-    which the limbs' twists are read (`limb_twists`); None keeps the rest pose's guess.
+    motion: the source's global rotations (joint index -> [T, 3, 3], at least the mapped joints) and
+    positions [T, J, 3], in our axes, from which the limbs' twists are read (`limb_twists`); None
+    keeps the rest pose's guess.
     """
     names, (parent, _) = character.body_names, tree(character)
     body_pos = character.model.body_pos[1:]
@@ -134,7 +135,7 @@ def _bones(character: Character, joints: list, rest: np.ndarray, src: dict) -> d
 
 
 def limb_twists(
-    character: Character, rest: np.ndarray, src: dict, bone: dict, corr: dict, rots: np.ndarray, pos: np.ndarray
+    character: Character, rest: np.ndarray, src: dict, bone: dict, corr: dict, rots: dict, pos: np.ndarray
 ) -> dict:
     """The limbs' corrections `corr` (body index -> quaternion) turned about their bones as the motion shows.
 
@@ -173,7 +174,7 @@ def limb_twists(
             steady = np.linalg.norm(n, axis=-1).mean()
             for body in (names.index(f"{side}_{kind}") for kind in fixed):
                 s = src[names[body]]
-                n_src = np.einsum("tij,ti->j", rots[:, s], n) / len(n)  # G^T n, the mean over the frames
+                n_src = np.einsum("tij,ti->j", rots[s], n) / len(n)  # G^T n, the mean over the frames
                 if np.linalg.norm(n_src) < max(MIN_BEND, MIN_STEADY * steady):
                     continue
                 mine = normal if body == u or bend is None else rot.rotate(rot.conj(bend), normal)
