@@ -17,6 +17,9 @@
   LeftHand, LeftFingerBase, LThumb), CMU units (1/0.45 inch), ZYX channels, a T-pose with the
   legs 20 degrees apart, and the rest pose as frame 0; moving as the bundled walk, so the import
   has a known answer.
+* LaFAN1's rest pose with a known answer: `lafan_walk` lays our skeleton's bones along their
+  joints' x axes and twists the limbs as the rest pose cannot tell (the legs and feet by half a
+  turn, the arms by a quarter), moving as the bundled walk.
 
 `make samples` (tests/samples.py) fetches the two files.
 """
@@ -37,7 +40,7 @@ from workers.body import rotations as rot
 from workers.motion.clip import normalize_quats
 from workers.motion.formats import bvh, load_raw
 from workers.motion.formats.bvh_names import match_joints
-from workers.motion.formats.bvh_retarget import GROUND_PERCENTILE, lowest_points
+from workers.motion.formats.bvh_retarget import GROUND_PERCENTILE, lowest_points, rest_corrections, swing
 
 # file -> (frames, rate (Hz), unit, the source joints of some of our bodies)
 REAL = {
@@ -215,3 +218,84 @@ def test_file_unit_is_read_from_the_legs_not_the_height(character, cmu_file, tmp
     assert bvh.leg_length(bvh.rest_positions(flat), src) == pytest.approx(leg, rel=1e-9)
     assert np.ptp(bvh.rest_positions(flat)[:, 1]) == 0.0  # no height at all
     assert bvh.guess_scale(Path(path), leg) == bvh.UNITS["CMU units"]
+
+
+def test_legs_human_in_no_unit_are_one_line_naming_the_file(character, tmp_path, capsys):
+    """The CMU walk at 3.5 units a metre: legs of 2.9 units, 2.9 m in metres, 7.5 cm in inches,
+    17 cm in CMU units. The checker says so in one line, nothing is imported."""
+    walk = load_raw(character, "humanoid3d_walk")
+    skel, glob, root = cmu_walk(character, walk)
+    path = tmp_path / "tiny_units.bvh"
+    write_bvh(path, skel, glob, root, walk.times[1], scale=3.5)
+    assert motion_cli.main(["check", str(path)]) == 1
+    err = capsys.readouterr().err.strip()
+    assert "tiny_units.bvh" in err and "cannot tell the file's unit" in err and "\n" not in err
+    raw = bvh.load(character, path, scale=1.0 / 3.5)  # an explicit scale still imports it
+    assert 0.5 < np.median(raw.qpos[:, 2]) < 1.0
+
+
+# ----------------------------------------------------------------------------
+# LaFAN1's rest pose with a known answer: every bone along x, limbs twisted as the rest cannot tell
+# ----------------------------------------------------------------------------
+LAFAN_NAMES = {
+    "root": "Hips", "chest": "Spine2", "neck": "Neck", "left_shoulder": "LeftArm", "left_elbow": "LeftForeArm",
+    "left_wrist": "LeftHand", "right_shoulder": "RightArm", "right_elbow": "RightForeArm",
+    "right_wrist": "RightHand", "left_hip": "LeftUpLeg", "left_knee": "LeftLeg", "left_ankle": "LeftFoot",
+    "right_hip": "RightUpLeg", "right_knee": "RightLeg", "right_ankle": "RightFoot",
+}  # fmt: skip
+# The limbs' turn about their bones beyond what the rest pose suggests: half a turn for the
+# legs and feet (LaFAN1's: the knees bend the other way, the feet lie sole up), a quarter for the arms.
+TWIST = {"hip": np.pi, "knee": np.pi, "ankle": np.pi, "shoulder": np.pi / 2, "elbow": np.pi / 2}
+
+
+def lafan_walk(character, walk):
+    """(skeleton for write_bvh, global rotations [T, J, 4], the rest pose's guess, the true corrections).
+
+    Our skeleton, LaFAN1's names, each body's frame turned by C_b so that its bone lies along
+    its x axis (the hips: spine along x, left along -y as LaFAN1's file has it); the source's
+    joints turn as G_ours C_b^-1.
+    """
+    names, parent = character.body_names, character.model.body_parentid[1:] - 1
+    kids = {b: [c for c in range(1, len(names)) if parent[c] == b] for b in range(len(names))}
+    x = np.array([1.0, 0.0, 0.0])
+    frame = {0: rot.from_matrix(np.array([[0.0, 0.0, 1.0], [0.0, -1.0, 0.0], [1.0, 0.0, 0.0]]))}
+    for b in range(1, len(names)):
+        bone = character.model.body_pos[kids[b][0] + 1] if kids[b] else np.asarray(bvh.END_SITES[names[b]])
+        frame[b] = swing(bone, x)
+    skel = []
+    for b, body in enumerate(names):
+        offset = np.zeros(3) if b == 0 else rot.rotate(frame[parent[b]], character.model.body_pos[b + 1])
+        end = rot.rotate(frame[b], np.asarray(bvh.END_SITES[body])) if not kids[b] else None
+        channels = ("Xposition Yposition Zposition " if b == 0 else "") + "Zrotation Yrotation Xrotation"
+        skel.append([LAFAN_NAMES[body], int(parent[b]) if b else -1, offset, channels.split(), end])
+    joints = [bvh.Joint(n, p, o) for n, p, o, *_ in skel]
+    joints += [
+        bvh.Joint(f"{n}/End Site", j, e, end_site=True) for j, (n, _, _, _, e) in enumerate(skel) if e is not None
+    ]
+    guess = rest_corrections(character, joints, bvh.rest_positions(joints), {n: i for i, n in enumerate(names)})
+    truth = {}
+    for b, body in enumerate(names):
+        kind = body.split("_", 1)[-1]
+        truth[b] = rot.mul(rot.from_expmap(TWIST.get(kind, 0.0) * x), guess[b]) if kind in TWIST else guess[b]
+    w = body_globals(character, normalize_quats(character, walk.qpos))
+    glob = np.stack([rot.mul(w[:, b], rot.conj(truth[b])) for b in range(len(names))], axis=1)
+    return skel, glob, guess, truth
+
+
+def test_lafan1_rest_pose_imports_as_the_walk(character, tmp_path):
+    walk = load_raw(character, "humanoid3d_walk")
+    skel, glob, guess, truth = lafan_walk(character, walk)
+    parent = [row[1] for row in skel]
+    first = [b for b in range(1, len(skel)) if b == parent.index(parent[b])]  # first children: the bones
+    bones = [skel[b][2] for b in first] + [row[4] for row in skel if row[4] is not None]
+    assert all(v[0] > 0.0 and np.abs(v[1:]).max() < 1e-12 for v in bones)  # every bone along its joint's x
+    path = tmp_path / "lafan_walk.bvh"
+    write_bvh(path, skel, glob, walk.qpos[:, :3], walk.times[1], scale=100.0)
+    # What the rest pose alone guesses is off by the twists (a half turn for the legs).
+    legs = [b for b, name in enumerate(character.body_names) if name.endswith(("hip", "knee", "ankle"))]
+    assert all(rot.angle(rot.mul(guess[b], rot.conj(truth[b]))) > 3.0 for b in legs)
+    raw = bvh.load(character, path)
+    lift = -np.percentile(lowest_points(character, normalize_quats(character, walk.qpos)), GROUND_PERCENTILE)
+    expected = walk.qpos.copy()
+    expected[:, 2] += lift
+    assert_same_poses(character, expected, raw.qpos, rot_tol=1e-6, pos_tol=1e-6)
