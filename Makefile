@@ -24,7 +24,7 @@ setup:
 	$(BIN)/pip install -c constraints.txt -e '.[dev]'
 	$(MAKE) samples
 
-# Third-party BVH files the import tests read (from bvhtoolbox's sdist on PyPI; tests/samples.py).
+# Third-party BVH files the import tests read (from bvhtoolbox's and bvhtools' sdists on PyPI; tests/samples.py).
 samples:
 	$(BIN)/python -m tests.samples
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+from pathlib import Path
 
 import mujoco
 import numpy as np
@@ -262,12 +263,40 @@ def test_a_rest_frame_before_the_motion_is_dropped(character, walk, tmp_path, ca
 
 
 @pytest.mark.parametrize(
-    ("height", "unit"),
-    [(1.62, "metres"), (162.0, "centimetres"), (1780.0, "millimetres"), (62.2, "inches"), (25.7, "CMU units")],
+    ("leg", "unit"),
+    [
+        (0.831, "metres"),  # ours: 0.4215 + 0.4099
+        (0.654, "metres"),  # bvhtools' Rigify-named test3.bvh (a small character)
+        (82.7, "centimetres"),  # bvhtoolbox's Mixamo export
+        (85.87, "centimetres"),  # LaFAN1: 43.50 + 42.37, its rest pose lying along x
+        (870.0, "millimetres"),
+        (33.5, "inches"),  # 0.85 m
+        (14.9, "CMU units"),  # cgspeed's CMU skeleton: 7.6 + 7.3 (0.84 m)
+    ],
 )
-def test_guess_scale_reads_the_unit_from_a_persons_height(height, unit):
-    """Rest heights of our skeleton, a Mixamo file, a mm export, 0005_Walking001 (inches), CMU 01_14."""
-    assert bvh.guess_scale(np.array([0.0, height])) == bvh.UNITS[unit]
+def test_guess_scale_reads_the_unit_from_the_legs(leg, unit):
+    assert bvh.guess_scale(Path("x.bvh"), leg) == bvh.UNITS[unit]
+
+
+@pytest.mark.parametrize("leg", [3.0, 300.0])
+def test_a_leg_human_in_no_unit_is_one_line_naming_the_file(leg):
+    """3 units: 3 m, 7.6 cm in inches, 17 cm in CMU units; 300: 3 m in centimetres, 7.6 m in inches."""
+    with pytest.raises(ClipError, match=r"x\.bvh.*cannot tell the file's unit.*scale=") as e:
+        bvh.guess_scale(Path("x.bvh"), leg)
+    assert "\n" not in str(e.value)
+
+
+def test_unit_from_the_legs_whatever_the_rest_pose(character, walk, tmp_path):
+    """Our skeleton with every bone laid along x (LaFAN1's rest pose) is read in centimetres all the
+    same: its rest height (a few cm) once read it in metres, putting the root 100 m off at 100 m."""
+    skel = our_skeleton(character)
+    for row in skel[1:]:
+        row[2] = np.array([np.linalg.norm(row[2]), 0.0, 0.0])  # each bone along its parent's x
+    joints = [bvh.Joint(name, parent, offset) for name, parent, offset, *_ in skel]
+    rest = bvh.rest_positions(joints)
+    assert np.ptp(rest[:, 2]) == 0.0  # flat: no height to read a unit from
+    src = {name: j for j, (name, *_) in enumerate(skel)}
+    assert bvh.guess_scale(Path("x.bvh"), 100.0 * bvh.leg_length(rest, src)) == bvh.UNITS["centimetres"]
 
 
 # ----------------------------------------------------------------------------

@@ -1,7 +1,8 @@
 """Which source joint drives which body of ours, on the hierarchies of real exports.
 
-Mixamo, CMU (cgspeed), mocap-bank, Biovision, Bandai-Namco, Daz, 3ds Max biped, Unreal,
-Blender (Rigify) and OpenNI skeletons, written as outlines from the files' HIERARCHY.
+Mixamo, CMU (cgspeed), LaFAN1, mocap-bank, Biovision, Bandai-Namco, Daz, 3ds Max biped, Unreal,
+Blender, Rigify (metarig and deform bones) and OpenNI skeletons, written as outlines from the
+files' HIERARCHY.
 """
 
 from __future__ import annotations
@@ -237,6 +238,83 @@ CONVENTIONS = {
         {"root": "hips", "chest": "chest", "neck": "neck", "shoulder": "upper_arm.<", "elbow": "forearm.<",
          "wrist": "hand.<", "hip": "thigh.<", "knee": "shin.<", "ankle": "foot.<"},
     ),
+    "lafan1": (  # the bvhtools sample's hierarchy (test_bvh_conventions.py imports the file itself)
+        """
+        Hips
+         <UpLeg
+          <Leg
+           <Foot
+            <Toe
+         Spine
+          Spine1
+           Spine2
+            Neck
+             Head
+            <Shoulder
+             <Arm
+              <ForeArm
+               <Hand
+        """,
+        ("Left", "Right"),
+        {"root": "Hips", "chest": "Spine2", "neck": "Neck", "shoulder": "<Arm", "elbow": "<ForeArm",
+         "wrist": "<Hand", "hip": "<UpLeg", "knee": "<Leg", "ankle": "<Foot"},
+    ),
+    "rigify_metarig": (  # spine is the hips, spine.003 the chest, spine.004 the neck, spine.006 the head
+        """
+        spine
+         spine.001
+          spine.002
+           spine.003
+            spine.004
+             spine.005
+              spine.006
+               face
+            shoulder.<
+             upper_arm.<
+              forearm.<
+               hand.<
+                palm.01.<
+            breast.<
+         pelvis.<
+         thigh.<
+          shin.<
+           foot.<
+            toe.<
+            heel.02.<
+        """,
+        ("L", "R"),
+        {"root": "spine", "chest": "spine.003", "neck": "spine.004", "shoulder": "upper_arm.<",
+         "elbow": "forearm.<", "wrist": "hand.<", "hip": "thigh.<", "knee": "shin.<", "ankle": "foot.<"},
+    ),
+    "rigify_deform": (  # the generated rig's DEF- bones, limbs in two segments
+        """
+        DEF-spine
+         DEF-spine.001
+          DEF-spine.002
+           DEF-spine.003
+            DEF-spine.004
+             DEF-spine.005
+              DEF-spine.006
+            DEF-shoulder.<
+             DEF-upper_arm.<
+              DEF-upper_arm.<.001
+               DEF-forearm.<
+                DEF-forearm.<.001
+                 DEF-hand.<
+            DEF-breast.<
+         DEF-pelvis.<
+         DEF-thigh.<
+          DEF-thigh.<.001
+           DEF-shin.<
+            DEF-shin.<.001
+             DEF-foot.<
+              DEF-toe.<
+        """,
+        ("L", "R"),
+        {"root": "DEF-spine", "chest": "DEF-spine.003", "neck": "DEF-spine.004", "shoulder": "DEF-upper_arm.<",
+         "elbow": "DEF-forearm.<", "wrist": "DEF-hand.<", "hip": "DEF-thigh.<", "knee": "DEF-shin.<",
+         "ankle": "DEF-foot.<"},
+    ),
     "openni": (  # no clavicle: the shoulder is the upper arm
         """
         pelvis
@@ -279,6 +357,8 @@ def test_split_name():
     assert split_name("Bip01 R Thigh") == ("right", "thigh") and split_name("upper_arm.L") == ("left", "upperarm")
     assert split_name("LowerBack") == (None, "lowerback") and split_name("Spine1") == (None, "spine")
     assert split_name("hip") == (None, "hip") and split_name("RightHip") == ("right", "hip")
+    assert split_name("DEF-thigh.L") == ("left", "thigh") and split_name("DEF-thigh.L.001") == ("left", "thigh")
+    assert split_name("ORG-spine.003") == (None, "spine") and split_name("spine.004") == (None, "spine")
 
 
 def test_a_shoulder_without_an_elbow_below_is_not_guessed(character):

@@ -28,7 +28,8 @@ from workers.types import KinState
 
 log = logging.getLogger(__name__)
 
-CACHE_VERSION = "3"  # 2: BVH imports grounded, matched by naming conventions; 3: last frame kept
+CACHE_VERSION = "4"  # 2: BVH imports grounded, matched by naming conventions; 3: last frame kept; 4: BVH unit
+# from the legs, limb twists from the motion, Rigify names
 _FRAME_FIELDS = ("qpos", "qvel", "xpos", "xquat", "lin_vel", "ang_vel")
 
 

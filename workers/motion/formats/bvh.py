@@ -13,12 +13,13 @@ components of the OFFSET. It then retargets onto our character:
 
 * Joints are matched to our bodies by the naming conventions of Mixamo, CMU, LaFAN1,
   the mocap-bank/Biovision Collar-Shoulder-Elbow-Wrist and Hip-Knee-Ankle skeletons,
-  3ds Max bipeds, Blender and game rigs (`bvh_names`), then by the skeleton where the
-  names are ambiguous ("LeftShoulder" is the clavicle in Mixamo, the upper arm under a
-  "LeftCollar"). `joint_map` (source joint name -> our body) is applied first and
-  overrides the conventions for the bodies it names. Our root and every body driven by
-  a joint must find a source joint (else one ClipError listing them), except the neck
-  (a warning; it keeps the identity rotation).
+  3ds Max bipeds, Blender and Rigify (metarig and DEF- bones) and game rigs
+  (`bvh_names`), then by the skeleton where the names are ambiguous ("LeftShoulder" is
+  the clavicle in Mixamo, the upper arm under a "LeftCollar"). `joint_map` (source
+  joint name -> our body) is applied first and overrides the conventions for the
+  bodies it names. Our root and every body driven by a joint must find a source joint
+  (else one ClipError listing them), except the neck (a warning; it keeps the identity
+  rotation).
 * Per body, G_ours = G_source C: the source joint's global orientation and a
   rest-pose correction C, the facing alignment F (our rest frame, spine up and hips
   left to right, onto the source's) then the smallest rotation taking our rest
@@ -28,6 +29,11 @@ components of the OFFSET. It then retargets onto our character:
   has no source (for both skeletons), or, for our leaves, to the End Site (for the
   source: the mean of its children's offsets). Files from `save` import with
   identity corrections. Hinges keep the twist about their axis.
+* A bone's direction leaves its twist open, and a rest pose far from ours (LaFAN1's,
+  every bone along its joint's x axis: the legs along the spine) guesses it wrong
+  (knees bending forward, feet upside down). The limbs' twists are read from the
+  motion instead: the planes of thigh and shin, upper arm and forearm, shin and foot
+  over the clip (`bvh_retarget.limb_twists`).
 * A first frame apart from the motion (a joint turning by over 45 degrees to the next
   frame, and four times as far as the clip's frames do at the 95th percentile; the
   cgspeed CMU conversion starts each file with its rest pose) is dropped.
@@ -39,9 +45,11 @@ components of the OFFSET. It then retargets onto our character:
   reference model's are 0.88 m, hip to sole), so without it the feet float or sink by
   the difference over the whole clip. `ground=None` keeps the file's heights.
 
-`scale` (metres per file unit) defaults to a guess from the rest pose's height: the
-unit of UNITS (metres, centimetres, millimetres, inches, CMU's 1/0.45 inch) that makes
-it closest to a person's 1.7 m. Other sizes or units need an explicit `scale`.
+`scale` (metres per file unit) defaults to a guess from the legs' bone lengths (hip to
+knee to ankle, whatever the rest pose's orientation): the unit of UNITS (metres,
+centimetres, millimetres, inches, CMU's 1/0.45 inch) that makes them closest to a
+person's 0.85 m; a leg that is no human leg in any of them is a ClipError naming the
+file. Other sizes or units need an explicit `scale`.
 """
 
 from __future__ import annotations
@@ -65,9 +73,12 @@ log = logging.getLogger(__name__)
 
 SAVE_UNITS_PER_METRE = 100.0  # `save` writes centimetres
 SAVE_ROTATION_ORDER = "ZXY"
-# Units a file may be in (metres per unit) and the height guess_scale expects of a person.
+# Units a file may be in (metres per unit), the leg (hip to knee to ankle) guess_scale expects of a
+# person (ours 0.83 m, LaFAN1's 0.86, CMU 01_14's 0.84) and the legs it accepts (a child's to a tall
+# adult's, with room for the 1.6x between centimetres and inches).
 UNITS = {"metres": 1.0, "centimetres": 0.01, "millimetres": 0.001, "inches": 0.0254, "CMU units": 0.0254 / 0.45}
-PERSON_HEIGHT = 1.7
+PERSON_LEG = 0.85
+LEG_RANGE = (0.4, 1.4)
 # A first frame from which some joint turns by more than this (radians) to the next, and by four
 # times the 95th percentile of the clip's largest turn a frame, is a pose put before the motion
 # (the cgspeed CMU conversion starts each file with its rest pose).
@@ -236,16 +247,15 @@ def parse(path: str | Path) -> tuple[list[Joint], np.ndarray, float]:
         lines = path.read_text().splitlines()
     except (OSError, UnicodeDecodeError) as e:
         raise ClipError(path, f"cannot read as text ({e})") from None
-    words = [line.split() for line in lines]
-    filled = [i for i, w in enumerate(words) if w]
-    if not filled or words[filled[0]][0].upper() != "HIERARCHY":
+    filled = [i for i, line in enumerate(lines) if line.strip()]  # words split a line at a time (long clips)
+    if not filled or lines[filled[0]].split()[0].upper() != "HIERARCHY":
         raise ClipError(path, "no HIERARCHY section (not a BVH file)")
-    motion = next((i for i in filled if words[i][0].upper() == "MOTION"), None)
+    motion = next((i for i in filled if lines[i].split(None, 1)[0].upper() == "MOTION"), None)
     if motion is None:
         raise ClipError(path, "no MOTION section")
-    joints, ncols = _parse_hierarchy(path, [t for w in words[filled[0] : motion] for t in w][1:])
+    joints, ncols = _parse_hierarchy(path, [t for line in lines[filled[0] : motion] for t in line.split()][1:])
     after = [i for i in filled if i > motion]
-    head = [" ".join(words[i]) for i in after[:2]] + ["", ""]
+    head = [" ".join(lines[i].split()) for i in after[:2]] + ["", ""]
     m_frames = re.fullmatch(r"frames\s*:\s*(\d+)", head[0], re.IGNORECASE)
     m_time = re.fullmatch(r"frame\s*time\s*:\s*(\d*\.?\d+(?:e[-+]?\d+)?)", head[1], re.IGNORECASE)
     if m_frames is None or m_time is None or float(m_time.group(1)) <= 0:
@@ -260,10 +270,11 @@ def parse(path: str | Path) -> tuple[list[Joint], np.ndarray, float]:
         log.warning("%s: %d lines after the %d declared frames ignored", path, len(data) - declared, declared)
     frames = np.empty((declared, ncols))
     for f, i in enumerate(data[:declared]):
-        if len(words[i]) != ncols:
-            raise ClipError(path, f"expected {ncols} values (the channel count), got {len(words[i])}", f)
+        words = lines[i].split()
+        if len(words) != ncols:
+            raise ClipError(path, f"expected {ncols} values (the channel count), got {len(words)}", f)
         try:
-            frames[f] = [float(w) for w in words[i]]
+            frames[f] = [float(w) for w in words]
         except ValueError as e:
             raise ClipError(path, f"non-numeric value ({e})", f) from None
     bad = ~np.isfinite(frames).all(axis=1)
@@ -301,12 +312,32 @@ def rest_positions(joints: list[Joint]) -> np.ndarray:
     return out
 
 
-def guess_scale(heights: np.ndarray) -> float:
-    """Metres per file unit from the rest pose's vertical extent: the UNITS entry closest to a person's height."""
-    span = float(np.ptp(heights))
-    if span <= 0.0:
-        return 1.0
-    return min(UNITS.values(), key=lambda unit: abs(np.log(span * unit / PERSON_HEIGHT)))
+def leg_length(rest: np.ndarray, src: dict) -> float | None:
+    """Hip to knee to ankle (file units) of the source's rest pose, mean over the sides; None without a leg."""
+    legs = [
+        np.linalg.norm(rest[src[f"{s}_knee"]] - rest[src[f"{s}_hip"]])
+        + np.linalg.norm(rest[src[f"{s}_ankle"]] - rest[src[f"{s}_knee"]])
+        for s in ("left", "right")
+        if {f"{s}_hip", f"{s}_knee", f"{s}_ankle"} <= set(src)
+    ]
+    return float(np.mean(legs)) if legs else None
+
+
+def guess_scale(path: Path, leg: float) -> float:
+    """Metres per file unit: the UNITS entry that makes a leg (hip to ankle) closest to a person's PERSON_LEG.
+
+    Bone lengths do not depend on how the rest pose stands (upright, T-pose, or LaFAN1's, every bone
+    along its joint's x axis). A leg outside LEG_RANGE in every unit is a ClipError naming the file.
+    """
+    best = min(UNITS, key=lambda unit: abs(np.log(max(leg, 1e-12) * UNITS[unit] / PERSON_LEG)))
+    if not LEG_RANGE[0] <= leg * UNITS[best] <= LEG_RANGE[1]:
+        raise ClipError(
+            path,
+            f"cannot tell the file's unit: its legs (hip to knee to ankle) are {leg:.4g} units long, a human "
+            f"leg ({LEG_RANGE[0]}-{LEG_RANGE[1]} m) in none of {', '.join(UNITS)}; convert it to one of "
+            "them (or call workers.motion.formats.bvh.load with scale=, metres per unit)",
+        )
+    return UNITS[best]
 
 
 def _starts_with_rest_frame(g_mat: np.ndarray) -> bool:
@@ -332,7 +363,7 @@ def load(
 
     joint_map: source joint name -> our body name (case-insensitive), added to (and overriding)
       the naming conventions of `bvh_names`.
-    scale: metres per file unit; guessed from the skeleton's height when None.
+    scale: metres per file unit; guessed from the legs' bone lengths when None (guess_scale).
     up: "y" for the usual y-up files (x forward, z right), "z" for files in our axes.
     ground: the height (m) for the clip's ground contact (see the module doc); None keeps the file's.
     """
@@ -346,10 +377,6 @@ def load(
         log.info("%s: frame 0 is a pose put before the motion (as in the cgspeed CMU files); dropped", path)
         frames, g_mat, g_pos = frames[1:], g_mat[1:], g_pos[1:]
     rest = rest_positions(joints) @ axes.T
-    if scale is None:
-        scale = guess_scale(rest[:, 2])
-        unit = next(k for k, v in UNITS.items() if v == scale)
-        log.info("%s: read in %s (rest height %.4g units; pass scale= otherwise)", path, unit, np.ptp(rest[:, 2]))
     names, (parent, _) = character.body_names, tree(character)
     src = match_joints(path, joints, names, joint_map)
     if names[0] not in src:
@@ -360,14 +387,22 @@ def load(
         refuse_unmatched(path, joints, essential)
     for body in minor:
         log.warning("%s: no source joint maps to %s; it keeps the identity rotation", path, body)
-    g_quat = rot.from_matrix(axes @ g_mat @ axes.T)  # [T, J, 4] in our axes
-    corr = rest_corrections(character, joints, rest, src)
+    if scale is None:
+        leg = leg_length(rest, src)
+        scale = guess_scale(path, leg) if leg is not None else UNITS["metres"]
+        unit = next(k for k, v in UNITS.items() if v == scale)
+        log.info("%s: read in %s (legs %.4g units; pass scale= otherwise)", path, unit, leg or 0.0)
+    g_rot = {j: axes @ g_mat[:, j] @ axes.T for j in sorted(set(src.values()))}  # the mapped joints', our axes
+    del g_mat
+    g_quat = {j: rot.from_matrix(m) for j, m in g_rot.items()}  # [T, 4] each
+    corr = rest_corrections(character, joints, rest, src, (g_rot, g_pos @ axes.T))
+    del g_rot
 
     model, n = character.model, frames.shape[0]
     qpos = np.zeros((n, model.nq))
     qpos[:, :3] = g_pos[:, src[names[0]]] @ axes.T * scale
     glob = np.zeros((n, len(names), 4))
-    qpos[:, 3:7] = glob[:, 0] = rot.mul(g_quat[:, src[names[0]]], corr[0])
+    qpos[:, 3:7] = glob[:, 0] = rot.mul(g_quat[src[names[0]]], corr[0])
     joint_of_body = {int(b): j for j, b in enumerate(character.body_of_joint)}
     for b in range(1, len(names)):
         j, body, pg = joint_of_body.get(b), names[b], glob[:, parent[b]]
@@ -378,7 +413,7 @@ def load(
         if body not in src:  # a minor body (warned above)
             qpos[:, sl.start] = 1.0 if character.joint_types[j] == "ball" else 0.0
             continue
-        local = rot.mul(rot.conj(pg), rot.mul(g_quat[:, src[body]], corr[b]))
+        local = rot.mul(rot.conj(pg), rot.mul(g_quat[src[body]], corr[b]))
         local = np.where(local[:, :1] < 0, -local, local)
         if character.joint_types[j] == "hinge":  # keep the twist about the axis
             axis = model.jnt_axis[model.joint(character.joint_names[j]).id]
@@ -397,6 +432,6 @@ def load(
 
 
 __all__ = [
-    "END_SITES", "UNITS", "Joint", "euler_to_matrix", "forward_kinematics", "guess_scale", "load", "match_joints",
-    "matrix_to_euler", "parse", "rest_corrections", "rest_positions", "save",
+    "END_SITES", "UNITS", "Joint", "euler_to_matrix", "forward_kinematics", "guess_scale", "leg_length", "load",
+    "match_joints", "matrix_to_euler", "parse", "rest_corrections", "rest_positions", "save",
 ]  # fmt: skip

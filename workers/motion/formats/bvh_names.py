@@ -1,16 +1,19 @@
 """Which joint of a BVH skeleton drives which of our bodies: the common naming conventions, then the skeleton.
 
 A name is read without its namespace (`mixamorig:`), case, separators, a trailing number
-(`Spine1`, `Neck1`) or a leading `Bip01`/`Character1` word, with the side from a prefix or
-suffix: `LeftArm`, `Left_Arm`, `l_arm`, `lShldr`, `LHipJoint`, `UpperArm_L`, `upperarm.l`,
-`ArmLeft`, `Bip01 L Thigh`. Each of our bodies takes the first joint, in hierarchy order, of
-its most preferred part (PARTS):
+(`Spine1`, `Neck1`, `spine.003`) or a leading `Bip01`/`Character1` word or Rigify layer
+(`DEF-`, `ORG-`), with the side from a prefix or suffix: `LeftArm`, `Left_Arm`, `l_arm`,
+`lShldr`, `LHipJoint`, `UpperArm_L`, `upperarm.l`, `ArmLeft`, `Bip01 L Thigh`, `DEF-thigh.L.001`
+(the thigh's second segment: the first, `DEF-thigh.L`, comes first and is taken). Each of our
+bodies takes the first joint, in hierarchy order, of its most preferred part (PARTS):
 
-* root: Hips, Pelvis, Hip (without a side, as Daz's), Root.
+* root: Hips, Pelvis, Hip (without a side, as Daz's), Root; else the spine joint both thighs
+  hang from (Rigify's metarig `spine`, its deform rig's `DEF-spine`).
 * chest: of the spine joints (Spine, Chest, LowerBack, Abdomen, ...), the last one below which
   both arms and the neck branch off: Spine2 in Mixamo and LaFAN1, Spine1 in CMU, Chest2 in
   the mocap-bank files, Chest in Bandai-Namco's. Our chest carries the arms and the neck.
-* neck: Neck (the first of Neck, Neck1), else Head; our neck body carries the head.
+* neck: Neck (the first of Neck, Neck1), else Head, else the spine joint on from the chest
+  (Rigify's `spine.004`); our neck body carries the head.
 * shoulder (our upper arm): Arm, UpArm, UpperArm, Shldr, Humerus; else the joint of that side
   that is the elbow's parent. So "LeftShoulder" is the clavicle in Mixamo, CMU and LaFAN1
   (LeftShoulder -> LeftArm -> LeftForeArm, left unused), and the upper arm where the clavicle
@@ -49,6 +52,7 @@ CENTRAL = ("root", "chest", "neck")
 # Parts recognised with a side but matched to none of our bodies by name.
 _OTHER_LIMB_PARTS = ("shoulder", "collar", "clavicle", "toe", "toebase", "toes")
 _KNOWN_CENTRAL = {p for k in CENTRAL for p in PARTS[k]}
+_SPINE = {(None, p) for p in PARTS["chest"]}
 _KNOWN_LIMB = {p for k, v in PARTS.items() if k not in CENTRAL for p in v} | set(_OTHER_LIMB_PARTS)
 _SIDE_WORDS = {"left": "left", "right": "right", "l": "left", "r": "right"}
 # Bodies that may go without a source joint (a warning): ours carry the head, a face of a sphere.
@@ -68,8 +72,10 @@ def split_name(name: str) -> tuple[str | None, str]:
             side, tokens = _SIDE_WORDS[t.lower()], tokens[:i] + tokens[i + 1 :]
             break
     variants = ["".join(tokens)]
-    if len(tokens) > 1 and re.fullmatch(r"[A-Za-z]+\d+|mixamorig|armature|skeleton|rig", tokens[0], re.IGNORECASE):
-        variants.append("".join(tokens[1:]))  # Bip01 Pelvis, Character1_Hips, mixamorig_Hips
+    if len(tokens) > 1 and re.fullmatch(
+        r"[A-Za-z]+\d+|mixamorig|armature|skeleton|rig|def|org", tokens[0], re.IGNORECASE
+    ):
+        variants.append("".join(tokens[1:]))  # Bip01 Pelvis, Character1_Hips, mixamorig_Hips, DEF-thigh.L
     fallback = None
     for text in variants:
         parses = [(side, text)] if side else [(None, text)]
@@ -146,13 +152,29 @@ def match_joints(path: Path, joints: list, bodies: list[str], joint_map: dict[st
             assign(f"{side}_ankle", kids[0] if kids else None)
         if f"{side}_elbow" in out:
             assign(f"{side}_shoulder", sided(joints[out[f"{side}_elbow"]].parent, side))
+    if "root" not in out and {"left_hip", "right_hip"} <= set(out):  # Rigify: spine is the hips
+        hips = _common_ancestor(joints, out["left_hip"], out["right_hip"])
+        assign("root", hips if hips is not None and parsed[hips] in _SPINE else None)
     assign("neck", find(None, "neck"))
+    spine = [j for j in real if parsed[j][0] is None and parsed[j][1] in PARTS["chest"] and j not in used]
     if "chest" in bodies and "chest" not in out:
-        spine = [j for j in real if parsed[j][0] is None and parsed[j][1] in PARTS["chest"] and j not in used]
         above = [out[b] for b in ("left_shoulder", "right_shoulder", "neck") if b in out]
         branch = [j for j in spine if all(_is_below(joints, a, j) for a in above)]
         assign("chest", max(branch, key=lambda j: _depth(joints, j)) if branch and above else next(iter(spine), None))
+    if "neck" not in out and "chest" in out:  # Rigify: the spine goes on past the chest (spine.004)
+        assign("neck", next((j for j in spine if joints[j].parent == out["chest"]), None))
     return out
+
+
+def _common_ancestor(joints: list, a: int, b: int) -> int | None:
+    """The deepest joint above both a and b (None if they share none)."""
+    above = set()
+    while a >= 0:
+        a = joints[a].parent
+        above.add(a)
+    while b >= 0 and b not in above:
+        b = joints[b].parent
+    return b if b >= 0 else None
 
 
 def _is_below(joints: list, j: int, anc: int) -> bool:
