@@ -54,13 +54,16 @@ def ray_env(token_path: Path, tracking: dict[str, str]) -> dict[str, str]:
 
 
 def ray_temp_dir(state_dir: Path) -> tuple[Path, bool]:
-    """Ray's --temp-dir (mode 0700): `<state-dir>/ray` when short enough for its sockets, else one under /tmp named
-    in `<state-dir>/ray-temp-dir` and used again by the next `up` (the bool: outside the state dir). `down` keeps
-    it either way: the working dirs of `ray job submit --working-dir` jobs, and what they wrote there, are in it."""
+    """Ray's --temp-dir: `<state-dir>/ray` when short enough for its sockets, else `ray` in a directory under /tmp
+    named in `<state-dir>/ray-temp-dir` and used again by the next `up` (the bool: outside the state dir). Ray
+    makes its temp dir 0777; the 0700 directory above it keeps other users out. `down` keeps it either way: the
+    working dirs of `ray job submit --working-dir` jobs, and what they wrote there, are in it."""
     inside = state_dir / "ray"
     if len(str(inside)) <= RAY_TEMP_MAX_CHARS:
         return private_dir(inside), False
-    return kept_dir(state_dir, "ray-temp-dir", "mocap-ray-"), True
+    outside = kept_dir(state_dir, "ray-temp-dir", "mocap-ray-") / "ray"
+    outside.mkdir(exist_ok=True)
+    return outside, True
 
 
 def write_token(path: Path) -> str:

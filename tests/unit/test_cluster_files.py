@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import configparser
 import os
+import shutil
 import stat
 from pathlib import Path
 
@@ -134,3 +135,15 @@ def test_the_auth_config_names_its_database_and_read_for_all_and_holds_no_passwo
     assert env["MLFLOW_AUTH_CONFIG_PATH"] == str(path) and env["MLFLOW_AUTH_ADMIN_PASSWORD"] == "the-admin-password"
     assert len(env["MLFLOW_FLASK_SERVER_SECRET_KEY"]) == 64
     assert "the-admin-password" not in path.read_text()
+
+
+def test_a_long_state_dirs_ray_temp_dir_sits_in_a_private_directory_outside(tmp_path):
+    """Ray makes its temp dir 0777; outside the state dir a 0700 directory above it keeps other users out."""
+    state_dir = private_dir(tmp_path / ("long-state-dir-" * 3))
+    temp, external = svc.ray_temp_dir(state_dir)
+    try:
+        assert external and len(str(temp)) <= svc.RAY_TEMP_MAX_CHARS and temp.is_dir()
+        assert mode(temp.parent) == 0o700 and temp.parent.stat().st_uid == os.geteuid()
+        assert svc.ray_temp_dir(state_dir) == (temp, True)  # the next up: the same one
+    finally:
+        shutil.rmtree(temp.parent)
