@@ -37,6 +37,11 @@ ADMIN_USER = "admin"  # MLflow's default admin name; its password is ours
 LAB_USER = "lab"  # the user jobs log as
 AUTH_DATABASE = "mlflow_auth"
 DEFAULT_PERMISSION = "READ"
+# The server checks a password with scrypt (werkzeug's default), a third of a second of CPU on a busy two-core
+# machine, at every request unless it remembers a success: for this long, per worker (keyed by an HMAC of the
+# password). A password changed or a user deleted through another worker is still accepted by this one for
+# at most that long.
+AUTH_CACHE_S = 60
 
 
 def require_auth_app() -> None:
@@ -56,6 +61,7 @@ def write_config(path: Path, database_uri: str) -> None:
         "database_uri": database_uri,
         "admin_username": ADMIN_USER,
         "authorization_function": "mlflow.server.auth:authenticate_request_basic_auth",
+        "auth_cache_ttl_seconds": str(AUTH_CACHE_S),
     }
     text = io.StringIO()
     config.write(text)

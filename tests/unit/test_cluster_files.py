@@ -131,6 +131,7 @@ def test_the_auth_config_names_its_database_and_read_for_all_and_holds_no_passwo
     assert section["default_permission"] == "READ"  # others' runs: readable, not writable
     assert section["database_uri"] == "postgresql+psycopg2://mlflow@127.0.0.1:5432/mlflow_auth"
     assert section["admin_username"] == "admin" and "admin_password" not in section
+    assert int(section["auth_cache_ttl_seconds"]) == mlflow_auth.AUTH_CACHE_S > 0  # one scrypt check a minute
     env = mlflow_auth.server_env(path, "the-admin-password")
     assert env["MLFLOW_AUTH_CONFIG_PATH"] == str(path) and env["MLFLOW_AUTH_ADMIN_PASSWORD"] == "the-admin-password"
     assert len(env["MLFLOW_FLASK_SERVER_SECRET_KEY"]) == 64

@@ -93,6 +93,7 @@ def test_mlflow_runs_the_basic_auth_app_with_read_for_all_and_no_password_in_its
     assert auth["default_permission"] == "READ"  # an authenticated user cannot write to another's runs
     assert auth["database_uri"] == "postgresql+psycopg2://mlflow@postgres:5432/mlflow_auth"
     assert "admin_password" not in auth and auth["admin_username"] == "admin"
+    assert int(auth["auth_cache_ttl_seconds"]) > 0  # a checked password is remembered (scrypt per request is slow)
     # The admin's password and Flask's CSRF key: from the environment, required (no default, hence no known one).
     assert mlflow["environment"]["MLFLOW_AUTH_ADMIN_PASSWORD"].startswith("${MLFLOW_ADMIN_PASSWORD:?")
     assert mlflow["environment"]["MLFLOW_FLASK_SERVER_SECRET_KEY"].startswith("${MLFLOW_FLASK_SECRET_KEY:?")
