@@ -17,6 +17,7 @@ from __future__ import annotations
 import base64
 import json
 import os
+import shutil
 import subprocess
 import sys
 import time
@@ -29,6 +30,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+import torch
 
 from orchestrator.cluster import mlflow_auth
 from orchestrator.cluster.procs import http_json, session_members
@@ -160,6 +162,10 @@ def cluster(tmp_path_factory):
         if "kept" in locals():
             missing = [str(p) for p in kept if not p.exists()]
             assert not missing, missing
+        # What down kept outside the test's state dir (under /tmp) is this test's own: removed here.
+        for pointer in ("postgres-home", "ray-temp-dir"):
+            if (state_dir / pointer).exists():
+                shutil.rmtree((state_dir / pointer).read_text().strip(), ignore_errors=True)
 
 
 def placement(cluster: Cluster, actors: list[dict[str, Any]], name: str) -> dict[str, str]:
@@ -263,6 +269,8 @@ def test_a_training_job_spreads_its_actors_over_both_nodes_and_tracks_into_postg
     files = {p.relative_to(stored).as_posix() for p in stored.rglob("*") if p.is_file()}
     assert {"config.json", "eval/final.json", "hydra/config.yaml"} <= files, sorted(files)
     assert any(f.startswith("checkpoints/ckpt-") and f.endswith(".pt") for f in files), sorted(files)
+    weights = torch.load(stored / "weights" / "controller.pt", weights_only=True)  # beside the pickled model
+    assert weights and all(isinstance(v, torch.Tensor) for v in weights.values())
     assert json.loads((stored / "config.json").read_text())["runtime"]["placement"] == "SPREAD"
     assert not (tmp_path / "run" / "mlruns").exists()
 
