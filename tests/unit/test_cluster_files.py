@@ -148,3 +148,16 @@ def test_a_long_state_dirs_ray_temp_dir_sits_in_a_private_directory_outside(tmp_
         assert svc.ray_temp_dir(state_dir) == (temp, True)  # the next up: the same one
     finally:
         shutil.rmtree(temp.parent)
+
+
+def test_mlflow_auth_without_its_passwords_is_one_line_and_exit_1(monkeypatch, capsys):
+    for key in ("MLFLOW_AUTH_ADMIN_PASSWORD", "MLFLOW_TRACKING_PASSWORD"):
+        monkeypatch.delenv(key, raising=False)
+    assert mlflow_auth.main(["http://127.0.0.1:9"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert err == "mlflow_auth: set MLFLOW_AUTH_ADMIN_PASSWORD, MLFLOW_TRACKING_PASSWORD"
+    monkeypatch.setenv("MLFLOW_AUTH_ADMIN_PASSWORD", "a")
+    monkeypatch.setenv("MLFLOW_TRACKING_PASSWORD", "b")
+    assert mlflow_auth.main(["http://127.0.0.1:9"]) == 1  # nothing listens there: one line, no traceback
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and err.startswith("mlflow_auth: ") and "Traceback" not in err
