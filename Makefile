@@ -53,7 +53,9 @@ lint:
 	$(BIN)/ruff format --check .
 
 # The cluster topology on this machine, no Docker: a Ray head and a Ray node (token authentication on),
-# PostgreSQL and an MLflow server on it; addresses in $(CLUSTER_DIR)/cluster.json. See docs/cluster.md.
+# PostgreSQL and an MLflow server on it (MLflow's basic-auth app: every request needs a user and password);
+# addresses in $(CLUSTER_DIR)/cluster.json, passwords in 0600 files beside it. `cluster-down` stops the
+# services and deletes no data (the database, artifacts and jobs' directories stay). See docs/cluster.md.
 CLUSTER_DIR ?= .cluster
 .PHONY: cluster-up cluster-down
 cluster-up:

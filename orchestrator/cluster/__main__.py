@@ -1,7 +1,7 @@
 """The topology a lab runs, on one machine, without Docker: `python -m orchestrator.cluster up|down|status|env`.
 
     python -m orchestrator.cluster up [--state-dir .cluster] [--json]   # or: make cluster-up
-    eval "$(python -m orchestrator.cluster env)"                         # the token and addresses, for clients
+    eval "$(python -m orchestrator.cluster env)"        # the Ray token, the addresses and the MLflow user, for clients
     ray job submit -- python -m orchestrator runtime=ray runtime.address=auto tracking.uri=$MLFLOW_TRACKING_URI
     python -m orchestrator.cluster down                                  # or: make cluster-down
 
@@ -16,10 +16,12 @@ import shlex
 import sys
 from pathlib import Path
 
+from orchestrator.cluster.files import private_dir
 from orchestrator.cluster.procs import ClusterError
 from orchestrator.cluster.topology import (
     DEFAULT_STATE_DIR,
     client_env,
+    client_secret_files,
     down,
     load_state,
     print_summary,
@@ -43,7 +45,7 @@ def main(argv: list[str] | None = None) -> int:
     state_dir = args.state_dir.resolve()
     try:
         if args.command == "up":
-            state_dir.mkdir(parents=True, exist_ok=True)
+            private_dir(state_dir)
             state = up(state_dir, args.head_cpus, args.node_cpus, args.nodes, args.object_store_mb, args.timeout)
             print_summary(state, args.json)
         elif args.command == "down":
@@ -64,6 +66,8 @@ def main(argv: list[str] | None = None) -> int:
                 raise ClusterError(f"no cluster recorded in {state_path(state_dir)}; run `up`")
             for key, value in client_env(state).items():
                 print(f"export {key}={shlex.quote(value)}")
+            for key, path in client_secret_files(state).items():  # read by the shell that evals this, not printed
+                print(f'export {key}="$(cat {shlex.quote(path)})"')
     except ClusterError as e:
         print(f"cluster {args.command}: {e}", file=sys.stderr)
         return 1

@@ -8,15 +8,17 @@ from __future__ import annotations
 
 import glob
 import os
+import pwd
 import secrets
 import shlex
 import shutil
 import subprocess
 import sys
-import tempfile
 from pathlib import Path
 from typing import Any
 
+from orchestrator.cluster import mlflow_auth
+from orchestrator.cluster.files import kept_dir, new_password, private_dir, read_secret, write_secret
 from orchestrator.cluster.procs import (
     ClusterError,
     free_ports,
@@ -38,33 +40,37 @@ RAY_TEMP_MAX_CHARS = 40
 # ---------------------------------------------------------------- Ray
 
 
-def ray_env(token_path: Path) -> dict[str, str]:
+def ray_env(token_path: Path, tracking: dict[str, str]) -> dict[str, str]:
     """The environment of Ray's processes and of its clients: token authentication on, with this cluster's token
     file (not ~/.ray/auth_token, which other Ray instances on the machine share), and this Python's scripts first on
-    PATH, so that a job's `python -m orchestrator` runs in the environment that started the cluster."""
+    PATH, so that a job's `python -m orchestrator` runs in the environment that started the cluster. `tracking`
+    (MLFLOW_TRACKING_USERNAME / _PASSWORD) is inherited by every job: whoever holds the Ray token can run code on
+    the nodes anyway."""
     env = {k: v for k, v in os.environ.items() if k not in ("RAY_AUTH_TOKEN", "RAY_ADDRESS")}
     env.update(RAY_AUTH_MODE="token", RAY_AUTH_TOKEN_PATH=str(token_path), RAY_USAGE_STATS_ENABLED="0")
+    env.update(tracking)
     env["PATH"] = os.pathsep.join([str(Path(sys.executable).parent), env.get("PATH", "")])
     return env
 
 
 def ray_temp_dir(state_dir: Path) -> tuple[Path, bool]:
-    """Ray's --temp-dir: `<state-dir>/ray` when short enough for its sockets, else a new one under /tmp
-    (the bool says it is outside the state dir, and `down` removes it)."""
+    """Ray's --temp-dir: `<state-dir>/ray` when short enough for its sockets, else `ray` in a directory under /tmp
+    named in `<state-dir>/ray-temp-dir` and used again by the next `up` (the bool: outside the state dir). Ray
+    makes its temp dir 0777; the 0700 directory above it keeps other users out. `down` keeps it either way: the
+    working dirs of `ray job submit --working-dir` jobs, and what they wrote there, are in it."""
     inside = state_dir / "ray"
     if len(str(inside)) <= RAY_TEMP_MAX_CHARS:
-        inside.mkdir(parents=True, exist_ok=True)
-        return inside, False
-    return Path(tempfile.mkdtemp(prefix="mocap-ray-", dir="/tmp" if os.path.isdir("/tmp") else None)), True
+        return private_dir(inside), False
+    outside = kept_dir(state_dir, "ray-temp-dir", "mocap-ray-") / "ray"
+    outside.mkdir(exist_ok=True)
+    return outside, True
 
 
 def write_token(path: Path) -> str:
     """A fresh cluster token (256 bits, as `ray get-auth-token --generate` makes), readable by this user only."""
     token = secrets.token_hex(32)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
-    with os.fdopen(fd, "w") as f:
-        f.write(token)
+    private_dir(path.parent)
+    write_secret(path, token)
     return token
 
 
@@ -169,20 +175,17 @@ def _run(command: list[str], what: str, log: Path, timeout_s: float) -> None:
 
 
 def pg_home(state_dir: Path) -> tuple[Path, bool]:
-    """Where the database lives: `<state-dir>/postgres`, or, as root when the `postgres` user cannot reach the state
-    dir (e.g. under a private temporary directory), a new directory under /tmp (the bool: outside the state dir)."""
-    home = state_dir / "postgres"
-    home.mkdir(parents=True, exist_ok=True)
+    """Where the database lives (mode 0700): `<state-dir>/postgres`, or, as root when the `postgres` user cannot
+    reach the state dir (a 0700 state dir of root's), a directory under /tmp owned by `postgres`, named in
+    `<state-dir>/postgres-home` and used again by every later `up` (the bool: outside the state dir)."""
+    home = private_dir(state_dir / "postgres")
     if os.geteuid() != 0:
         return home, False
     shutil.chown(home, PG_OS_USER, PG_OS_USER)
-    home.chmod(0o700)
     probe = subprocess.run(_as_pg_owner(["test", "-w", str(home)]), capture_output=True)
     if probe.returncode == 0:
         return home, False
-    outside = Path(tempfile.mkdtemp(prefix="mocap-pg-", dir="/tmp" if os.path.isdir("/tmp") else None))
-    shutil.chown(outside, PG_OS_USER, PG_OS_USER)
-    return outside, True
+    return kept_dir(state_dir, "postgres-home", "mocap-pg-", owner=pwd.getpwnam(PG_OS_USER).pw_uid), True
 
 
 def start_postgres(state_dir: Path, home: Path, external: bool, timeout_s: float, register) -> dict[str, Any]:
@@ -198,12 +201,10 @@ def start_postgres(state_dir: Path, home: Path, external: bool, timeout_s: float
     record["password_file"] = str(password_file)
     register(record)
     if not (data / "PG_VERSION").exists():
-        password = secrets.token_urlsafe(24)
-        fd = os.open(password_file, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
-        with os.fdopen(fd, "w") as f:
-            f.write(password)
+        password = new_password()
+        write_secret(password_file, password)
         pwfile = home / "initdb-password"
-        pwfile.write_text(password + "\n")
+        write_secret(pwfile, password + "\n")
         if os.geteuid() == 0:
             shutil.chown(pwfile, PG_OS_USER, PG_OS_USER)
         initdb = [str(bindir / "initdb"), "-D", str(data), "-U", PG_USER, f"--pwfile={pwfile}"]
@@ -212,7 +213,7 @@ def start_postgres(state_dir: Path, home: Path, external: bool, timeout_s: float
             _run(_as_pg_owner(initdb), f"initdb of {data}", state_dir / "logs" / "initdb.log", timeout_s)
         finally:
             pwfile.unlink(missing_ok=True)
-    password = password_file.read_text().strip()
+    password = read_secret(password_file)
     (port,) = free_ports(1)
     options = f"-h {HOST} -p {port} -k ''"
     start = [str(bindir / "pg_ctl"), "-D", str(data), "-l", str(log), "-o", options, "-w", "-t", str(int(timeout_s))]
@@ -223,13 +224,15 @@ def start_postgres(state_dir: Path, home: Path, external: bool, timeout_s: float
     register(record)
 
     def has_database() -> bool:
+        """The tracking database and the auth app's user database, created when missing."""
         conn = psycopg2.connect(host=HOST, port=port, user=PG_USER, password=password, dbname="postgres")
         try:
             conn.autocommit = True
             with conn.cursor() as cur:
-                cur.execute("SELECT 1 FROM pg_database WHERE datname = %s", (PG_USER,))
-                if cur.fetchone() is None:
-                    cur.execute(f'CREATE DATABASE "{PG_USER}"')
+                for name in (PG_USER, mlflow_auth.AUTH_DATABASE):
+                    cur.execute("SELECT 1 FROM pg_database WHERE datname = %s", (name,))
+                    if cur.fetchone() is None:
+                        cur.execute(f'CREATE DATABASE "{name}"')
         finally:
             conn.close()
         return True
@@ -239,21 +242,20 @@ def start_postgres(state_dir: Path, home: Path, external: bool, timeout_s: float
 
 
 def stop_postgres(record: dict[str, Any], logs: Path) -> None:
-    """`pg_ctl stop -m fast` on the recorded data directory; an outside home is copied into logs/ and removed."""
+    """`pg_ctl stop -m fast` on the recorded data directory, which stays where it is, wherever that is (an outside
+    home's log is copied into logs/ too)."""
     pg_ctl = [str(Path(record["bindir"]) / "pg_ctl"), "-D", record["data_dir"], "stop", "-m", "fast", "-w", "-t", "30"]
     if (Path(record["data_dir"]) / "postmaster.pid").exists():
         _run(_as_pg_owner(pg_ctl), f"pg_ctl stop of {record['data_dir']}", Path(record["log"]), 40)
-    if record.get("external"):
-        if Path(record["log"]).exists():
-            shutil.copy(record["log"], logs / "postgres.log")
-        shutil.rmtree(record["home"], ignore_errors=True)
+    if record.get("external") and Path(record["log"]).exists():
+        shutil.copy(record["log"], logs / "postgres.log")
 
 
 def postgres_answers(record: dict[str, Any]) -> bool:
     import psycopg2
 
     try:
-        password = Path(record["password_file"]).read_text().strip()
+        password = read_secret(Path(record["password_file"]))
         psycopg2.connect(record["uri"], password=password, connect_timeout=3).close()
         return True
     except (psycopg2.Error, OSError):
@@ -263,21 +265,53 @@ def postgres_answers(record: dict[str, Any]) -> bool:
 # ---------------------------------------------------------------- MLflow
 
 
-def start_mlflow(postgres: dict[str, Any], artifacts: Path, logs: Path, timeout_s: float, register) -> dict[str, Any]:
-    """`mlflow server` on PostgreSQL with proxied artifacts (clients upload through it to `artifacts`). The database
-    password travels in PGPASSWORD, not on the command line."""
+def mlflow_credentials(state_dir: Path) -> dict[str, str]:
+    """The MLflow users' password files (0600, made once and kept: the user database keeps them too): the admin's
+    and the lab user's, which jobs log as."""
+    admin_file, user_file = state_dir / "mlflow-admin-password", state_dir / "mlflow-password"
+    read_secret(admin_file, new_password)
+    read_secret(user_file, new_password)
+    return {"user": mlflow_auth.LAB_USER, "password_file": str(user_file), "admin_password_file": str(admin_file)}
+
+
+def tracking_env(credentials: dict[str, str]) -> dict[str, str]:
+    """A client's MLflow credentials (the environment variables MLflow's client reads), from `mlflow_credentials`."""
+    password = read_secret(Path(credentials["password_file"]))
+    return {"MLFLOW_TRACKING_USERNAME": credentials["user"], "MLFLOW_TRACKING_PASSWORD": password}
+
+
+def start_mlflow(
+    postgres: dict[str, Any], credentials: dict[str, str], state_dir: Path, timeout_s: float, register
+) -> dict[str, Any]:
+    """`mlflow server --app-name basic-auth` on PostgreSQL with proxied artifacts (clients upload through it to
+    `<state-dir>/artifacts`), then the lab's user in its user database. Every request but /health needs a user;
+    the passwords travel in the environment (PGPASSWORD, MLFLOW_AUTH_ADMIN_PASSWORD), not on the command line or
+    in the auth config."""
+    mlflow_auth.require_auth_app()
     (port,) = free_ports(1)
-    artifacts.mkdir(parents=True, exist_ok=True)
-    command = [sys.executable, "-m", "mlflow", "server", "--backend-store-uri", postgres["sqlalchemy_uri"]]
-    command += ["--artifacts-destination", str(artifacts), "--host", HOST, "--port", str(port), "--workers", "2"]
-    env = dict(os.environ, PGPASSWORD=Path(postgres["password_file"]).read_text().strip())
+    artifacts, logs = private_dir(state_dir / "artifacts"), state_dir / "logs"
+    config = state_dir / "mlflow-auth.ini"
+    auth_db = f"postgresql+psycopg2://{PG_USER}@{HOST}:{postgres['port']}/{mlflow_auth.AUTH_DATABASE}"
+    mlflow_auth.write_config(config, auth_db)
+    admin_password = read_secret(Path(credentials["admin_password_file"]))
+    command = [sys.executable, "-m", "mlflow", "server", "--app-name", "basic-auth"]
+    command += ["--backend-store-uri", postgres["sqlalchemy_uri"], "--artifacts-destination", str(artifacts)]
+    command += ["--host", HOST, "--port", str(port), "--workers", "2"]
+    env = dict(os.environ, PGPASSWORD=read_secret(Path(postgres["password_file"])))
+    env.update(mlflow_auth.server_env(config, admin_password))
+    for key in ("MLFLOW_TRACKING_USERNAME", "MLFLOW_TRACKING_PASSWORD", "MLFLOW_TRACKING_URI"):
+        env.pop(key, None)
     env.setdefault("MLFLOW_SERVER_ENABLE_JOB_EXECUTION", "false")
     env.setdefault("MLFLOW_DISABLE_TELEMETRY", "true")
     record = start_session(command, logs / "mlflow.log", env)
-    record.update(uri=f"http://{HOST}:{port}", artifacts=str(artifacts))
+    record.update(uri=f"http://{HOST}:{port}", artifacts=str(artifacts), auth_config=str(config), **credentials)
     register(record)
     health = f"{record['uri']}/health"
     wait_until(f"MLflow server {record['uri']}", lambda: http_ok(health), timeout_s, record["log"], record)
+    password = read_secret(Path(credentials["password_file"]))
+    mlflow_auth.ensure_user(
+        record["uri"], admin_password, credentials["user"], password, credentials["admin_password_file"]
+    )
     return record
 
 

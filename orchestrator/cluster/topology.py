@@ -5,25 +5,26 @@
   this cluster's own token in `<state-dir>/ray-auth-token`) and `--nodes` more Ray nodes joining it, each
   with its own logical CPUs, its own ports and a Ray temp dir of its own (no clash with other Rays here);
 - PostgreSQL (initdb once into the state dir, pg_ctl on 127.0.0.1 at a free port) with a database `mlflow`;
-- `mlflow server` on that database, artifacts proxied into `<state-dir>/artifacts` (clients log to
-  `mlflow-artifacts:` through the server).
-The addresses go to stdout and to `<state-dir>/cluster.json`; logs to `<state-dir>/logs/`. `down` stops only
-what `up` recorded there (never `ray stop`, which would stop every Ray on the machine) and keeps the database
-and the artifacts for the next `up`. A service that does not come up stops everything started so far and exits
-with one line naming it and its log.
+- `mlflow server --app-name basic-auth` on that database, artifacts proxied into `<state-dir>/artifacts` (clients
+  log to `mlflow-artifacts:` through the server); every request needs a user (`orchestrator.cluster.mlflow_auth`),
+  and jobs log as the lab's user, whose credentials the Ray nodes pass to every job.
+The addresses go to stdout and to `<state-dir>/cluster.json`; logs to `<state-dir>/logs/`; the state dir is 0700
+and each password and token in it 0600. `down` stops only what `up` recorded there (never `ray stop`, which would
+stop every Ray on the machine) and deletes nothing else: the database (wherever it lives), the artifacts, the
+passwords and Ray's temp dir (jobs' working dirs) stay for the next `up`. A service that does not come up stops
+everything started so far and exits with one line naming it and its log.
 """
 
 from __future__ import annotations
 
 import json
-import os
 import shlex
-import shutil
 import time
 from pathlib import Path
 from typing import Any
 
 from orchestrator.cluster import services as svc
+from orchestrator.cluster.files import private_dir, write_secret
 from orchestrator.cluster.procs import ClusterError, alive, http_ok
 
 STATE_FILE = "cluster.json"
@@ -43,21 +44,26 @@ def save_state(state: dict[str, Any]) -> None:
     """Written after every service that comes up, so that `down` can stop a half-started cluster."""
     path = state_path(Path(state["state_dir"]))
     tmp = path.with_suffix(".tmp")
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
-    with os.fdopen(fd, "w") as f:
-        json.dump(state, f, indent=2)
+    write_secret(tmp, json.dumps(state, indent=2))
     tmp.replace(path)
 
 
 def client_env(state: dict[str, Any]) -> dict[str, str]:
     """What a client of this cluster needs in its environment: Ray's token, the GCS (a driver's `ray.init("auto")`,
-    i.e. `runtime.address=auto`), the jobs API (`ray job submit`, `ray list actors`) and the tracking URI."""
+    i.e. `runtime.address=auto`), the jobs API (`ray job submit`, `ray list actors`), the tracking URI (no
+    credentials in it) and the MLflow user; its password is in `client_secret_files`."""
     env = {"RAY_AUTH_MODE": "token", "RAY_AUTH_TOKEN_PATH": state["ray"]["auth_token_path"]}
     env["RAY_ADDRESS"] = state["ray"]["head"]["gcs_address"]
     env["RAY_API_SERVER_ADDRESS"] = state["ray"]["head"]["dashboard_url"]
     if state.get("mlflow"):
         env["MLFLOW_TRACKING_URI"] = state["mlflow"]["uri"]
+        env["MLFLOW_TRACKING_USERNAME"] = state["mlflow"]["user"]
     return env
+
+
+def client_secret_files(state: dict[str, Any]) -> dict[str, str]:
+    """{variable: the 0600 file holding its value}: `env` prints `export VAR="$(cat FILE)"`, never the secret."""
+    return {"MLFLOW_TRACKING_PASSWORD": state["mlflow"]["password_file"]} if state.get("mlflow") else {}
 
 
 def summary(state: dict[str, Any]) -> dict[str, Any]:
@@ -73,6 +79,9 @@ def summary(state: dict[str, Any]) -> dict[str, Any]:
         "ray_auth_token_path": ray.get("auth_token_path"),
         "ray_nodes": nodes,
         "mlflow_tracking_uri": ml.get("uri"),
+        "mlflow_user": ml.get("user"),
+        "mlflow_password_file": ml.get("password_file"),
+        "mlflow_admin_password_file": ml.get("admin_password_file"),
         "mlflow_artifacts": ml.get("artifacts"),
         "postgres_uri": pg.get("uri"),
         "postgres_password_file": pg.get("password_file"),
@@ -89,10 +98,12 @@ def print_summary(state: dict[str, Any], as_json: bool) -> None:
     print(f"Ray dashboard   {info['ray_dashboard']}   (jobs: ray job submit --address {info['ray_dashboard']})")
     print(f"Ray GCS         {info['ray_gcs_address']}   ({nodes}; token in {info['ray_auth_token_path']})")
     print(f"MLflow          {info['mlflow_tracking_uri']}   (artifacts proxied into {info['mlflow_artifacts']})")
+    user, password, admin = info["mlflow_user"], info["mlflow_password_file"], info["mlflow_admin_password_file"]
+    print(f"MLflow users    {user} (jobs; password in {password}), admin (password in {admin})")
     print(f"PostgreSQL      {info['postgres_uri']}   (password in {info['postgres_password_file']})")
     print(f"State           {state_path(Path(info['state_dir']))}; logs in {info['logs']}")
     env_command = f"python -m orchestrator.cluster env --state-dir {shlex.quote(info['state_dir'])}"
-    print(f'Clients         eval "$({env_command})"')
+    print(f'Clients         eval "$({env_command})"   (Ray token, addresses, MLflow user and password)')
 
 
 def records(state: dict[str, Any]) -> list[tuple[str, dict[str, Any] | None]]:
@@ -115,11 +126,12 @@ def up(state_dir: Path, head_cpus: int, node_cpus: int, nodes: int, store_mb: in
         raise ClusterError(f"a cluster is already up from {state_path(state_dir)}; run `down` first")
     if previous is not None:  # a stale record (processes gone, e.g. after a reboot): clear what it left
         down(state_dir, quiet=True)
-    logs = state_dir / "logs"
-    logs.mkdir(parents=True, exist_ok=True)
+    private_dir(state_dir)
+    logs = private_dir(state_dir / "logs")
     temp_dir, temp_external = svc.ray_temp_dir(state_dir)
     token_path = state_dir / "ray-auth-token"
     svc.write_token(token_path)
+    credentials = svc.mlflow_credentials(state_dir)
     state: dict[str, Any] = {"state_dir": str(state_dir), "started": time.time()}
     state["ray"] = {"temp_dir": str(temp_dir), "temp_external": temp_external, "auth_token_path": str(token_path)}
     save_state(state)
@@ -140,18 +152,18 @@ def up(state_dir: Path, head_cpus: int, node_cpus: int, nodes: int, store_mb: in
         return put
 
     try:
-        env = svc.ray_env(token_path)
+        env = svc.ray_env(token_path, svc.tracking_env(credentials))
         state["ray"].update(head=None, nodes=[])
         head = svc.start_ray_head(temp_dir, logs, env, head_cpus, store_mb, timeout_s, register("ray", "head"))
         for i in range(1, nodes + 1):
             svc.start_ray_node(head, i, temp_dir, logs, env, node_cpus, store_mb, timeout_s, register("ray", "nodes"))
         save_state(state)  # the node ids found while waiting
         home, external = svc.pg_home(state_dir)
-        state["postgres"] = {"home": str(home), "external": external}  # removed by down if outside
+        state["postgres"] = {"home": str(home), "external": external}
         save_state(state)
         svc.start_postgres(state_dir, home, external, timeout_s, register("postgres"))
         state["mlflow"] = None
-        svc.start_mlflow(state["postgres"], state_dir / "artifacts", logs, timeout_s, register("mlflow"))
+        svc.start_mlflow(state["postgres"], credentials, state_dir, timeout_s, register("mlflow"))
         save_state(state)
     except BaseException:
         down(state_dir, quiet=True)
@@ -160,7 +172,8 @@ def up(state_dir: Path, head_cpus: int, node_cpus: int, nodes: int, store_mb: in
 
 
 def down(state_dir: Path, quiet: bool = False) -> bool:
-    """Stop what `up` recorded in the state dir; False when nothing was recorded."""
+    """Stop what `up` recorded in the state dir, deleting no data (the database, wherever it lives; Ray's temp
+    dir with jobs' working dirs; the artifacts); False when nothing was recorded."""
     state = load_state(state_dir)
     if state is None:
         return False
@@ -178,13 +191,15 @@ def down(state_dir: Path, quiet: bool = False) -> bool:
             if not quiet and (Path(pg["data_dir"]) / "postmaster.pid").exists():
                 print(f"stopping PostgreSQL ({pg['data_dir']})")
             svc.stop_postgres(pg, state_dir / "logs")
-        elif pg.get("external"):
-            shutil.rmtree(pg["home"], ignore_errors=True)
     except ClusterError as e:
         errors.append(str(e))
-    ray = state.get("ray") or {}
-    if ray.get("temp_external"):
-        shutil.rmtree(ray["temp_dir"], ignore_errors=True)
+    if not quiet:
+        for what, where in (
+            ("database", pg.get("data_dir")),
+            ("Ray temp dir", (state.get("ray") or {}).get("temp_dir")),
+        ):
+            if where and not Path(where).is_relative_to(state_dir):
+                print(f"kept the {what} in {where}")
     state_path(state_dir).unlink(missing_ok=True)
     if errors:
         raise ClusterError("; ".join(errors))

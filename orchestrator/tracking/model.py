@@ -1,11 +1,16 @@
-"""The trained controller as an MLflow model: `mlflow.pytorch.log_model` with an input example and signature.
+"""The trained controller as an MLflow model: `mlflow.pytorch.log_model` with an input example and signature,
+and beside it its weights alone, in a file that loads without unpickling.
 
 The policy the rollout workers ran (`Method.make_policy` with the run's last weights) gives its
 deterministic form (`Policy.deployable`: the VAE controller with z at its prior's mean, or the PPO
 actor's mean), and an input example of one standing start from the first clip. Load it with
-`mlflow.pytorch.load_model(<model uri>)`; the run's `model_uri` tag holds the uri. A tracking store
-that cannot take the model (the server is away) leaves it saved in `<run_dir>/model` instead, with
-one warning; the run goes on.
+`mlflow.pytorch.load_model(<model uri>)`; the run's `model_uri` tag holds the uri. That model is a
+pickle: loading it runs whatever code its file names, so load it only from a store that nobody else
+can write to. The run's `weights/controller.pt` artifact holds the module's state_dict as plain
+tensors: `torch.load(path, weights_only=True)` reads it without running code, and
+`module.load_state_dict` puts it into the module that `deployable` builds from the run's config.
+A tracking store that cannot take the model (the server is away) leaves it saved in `<run_dir>/model`
+instead, with one warning; the run goes on (the weights are spooled with the run's other artifacts).
 """
 
 from __future__ import annotations
@@ -28,6 +33,18 @@ from workers.sim.env import BatchedSim, SimConfig
 log = logging.getLogger(__name__)
 
 MODEL_NAME = "controller"
+WEIGHTS_FILE = "controller.pt"  # in <run_dir>/weights/, logged as the artifact weights/controller.pt
+
+
+def save_weights(module: torch.nn.Module, path: Path) -> None:
+    """`module`'s state_dict as CPU tensors and nothing else, so that `torch.load(path, weights_only=True)` reads it."""
+    state = {}
+    for key, value in module.state_dict().items():
+        if not isinstance(value, torch.Tensor):
+            raise TypeError(f"{type(module).__name__}.state_dict()[{key!r}] is a {type(value).__name__}, not a tensor")
+        state[key] = value.detach().cpu().clone()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    torch.save(state, path)
 
 
 def deployable(
@@ -54,6 +71,9 @@ def log_policy(logger: RunLogger, module: torch.nn.Module, example: np.ndarray, 
     uri = getattr(logger, "uri", None)
     if uri is None or logger.run_id is None:
         return None
+    weights = run_dir / "weights" / WEIGHTS_FILE
+    save_weights(module, weights)
+    logger.log_artifact(weights, "weights")
     with torch.no_grad():
         output = module(torch.from_numpy(example)).numpy()
     signature = infer_signature(example, output)

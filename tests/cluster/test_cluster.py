@@ -1,6 +1,10 @@
 """The cluster path, with real processes: `python -m orchestrator.cluster up` (a Ray head with 2 logical CPUs and a
-node with 4, token authentication on; PostgreSQL; `mlflow server` on it with proxied artifacts), a training job and a
-sweep submitted with `ray job submit`, then `down`.
+node with 4, token authentication on; PostgreSQL; `mlflow server --app-name basic-auth` on it with proxied
+artifacts), a training job and a sweep submitted with `ray job submit`, then `down`, which keeps the database and
+the jobs' working dirs.
+
+The MLflow server refuses a request without the lab user's password (401), and another user's writes to the lab's
+runs (403); the jobs log through it with the credentials that the Ray nodes pass them.
 
 A job's five actors need 4.5 CPUs, more than either node has, and `runtime.placement=SPREAD` asks for every node:
 the actors must land on both. What the jobs logged must be in PostgreSQL's tables and under the server's artifact
@@ -10,12 +14,15 @@ cluster's state.
 
 from __future__ import annotations
 
+import base64
 import json
 import os
+import shutil
 import subprocess
 import sys
 import time
 import urllib.error
+import urllib.request
 import uuid
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -23,7 +30,9 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+import torch
 
+from orchestrator.cluster import mlflow_auth
 from orchestrator.cluster.procs import http_json, session_members
 
 pytestmark = [pytest.mark.cluster, pytest.mark.slow]
@@ -36,7 +45,8 @@ TRAINING_ACTORS = {"learner-world_model", "learner-vae", "replay", "rollout-0", 
 class Cluster:
     state_dir: Path
     state: dict[str, Any]  # cluster.json
-    env: dict[str, str]  # a client's environment (`python -m orchestrator.cluster env`)
+    env: dict[str, str]  # a client's environment (`eval "$(python -m orchestrator.cluster env)"`)
+    kept: list[Path]  # what `down` must leave in place (checked after it)
 
     @property
     def dashboard(self) -> str:
@@ -62,14 +72,33 @@ class Cluster:
     def submit(self, name: str, *args: str, timeout: float = 420) -> dict[str, Any]:
         """`ray job submit` of `python -m orchestrator <args>` (its python: the one that started the cluster, first
         on the nodes' PATH); returns the job's info once it ended, asserting that it SUCCEEDED."""
+        return self.submit_command(name, ["python", "-m", "orchestrator", *args], timeout=timeout)[0]
+
+    def submit_command(
+        self, name: str, entrypoint: list[str], options: tuple[str, ...] = (), timeout: float = 420
+    ) -> tuple[dict[str, Any], str]:
+        """`ray job submit [options] -- <entrypoint>`: (the job's info, its output), asserting that it SUCCEEDED."""
         submission = f"{name}-{uuid.uuid4().hex[:6]}"
         command = [sys.executable, "-m", "ray.scripts.scripts", "job", "submit", "--address", self.dashboard]
-        command += ["--submission-id", submission, "--", "python", "-m", "orchestrator", *args]
+        command += ["--submission-id", submission, *options, "--", *entrypoint]
         proc = subprocess.run(command, cwd=ROOT, env=self.env, capture_output=True, text=True, timeout=timeout)
         info = self.rest(f"/api/jobs/{submission}")
         assert info["status"] == "SUCCEEDED", f"{submission}: {info['status']} {info['message']}\n{proc.stdout[-3000:]}"
         assert proc.returncode == 0, proc.stderr[-2000:]
-        return info
+        return info, proc.stdout
+
+    def mlflow(self, method: str, path: str, body: dict | None = None, auth: tuple[str, str] | None = None) -> int:
+        """The HTTP status of one REST call to the MLflow server, with basic authentication when `auth` is given."""
+        headers = {"Content-Type": "application/json"}
+        if auth is not None:
+            headers["Authorization"] = "Basic " + base64.b64encode(f"{auth[0]}:{auth[1]}".encode()).decode()
+        data = json.dumps(body).encode() if body is not None else None
+        request = urllib.request.Request(f"{self.tracking_uri}{path}", data=data, headers=headers, method=method)
+        try:
+            with urllib.request.urlopen(request, timeout=30) as response:
+                return response.status
+        except urllib.error.HTTPError as e:
+            return e.code
 
     @contextmanager
     def db(self):
@@ -104,10 +133,15 @@ def cluster(tmp_path_factory):
             "http://127.0.0.1:"
         )
         assert [n["cpus"] for n in info["ray_nodes"]] == [2, 4] and len({n["node_id"] for n in info["ray_nodes"]}) == 2
-        exports = cluster_command("env", "--state-dir", str(state_dir)).stdout.splitlines()
-        client = dict(line.removeprefix("export ").split("=", 1) for line in exports)
+        exports = cluster_command("env", "--state-dir", str(state_dir)).stdout
         env = {k: v for k, v in os.environ.items() if k not in ("RAY_ADDRESS", "RAY_AUTH_TOKEN")}
-        yield Cluster(state_dir, state, {**env, **client})
+        env = {k: v for k, v in env.items() if not k.startswith("MLFLOW_TRACKING_")}
+        # What a user's shell gets from eval "$(python -m orchestrator.cluster env)".
+        shell = subprocess.run(["sh", "-c", 'eval "$1" && env -0', "sh", exports], env=env, capture_output=True)
+        client = dict(item.split("=", 1) for item in shell.stdout.decode().split("\0") if "=" in item)
+        assert client["MLFLOW_TRACKING_USERNAME"] == "lab" and client["MLFLOW_TRACKING_PASSWORD"]
+        kept = [Path(state["postgres"]["data_dir"]) / "PG_VERSION"]
+        yield Cluster(state_dir, state, client, kept)
     finally:
         recorded = json.loads((state_dir / "cluster.json").read_text()) if (state_dir / "cluster.json").exists() else {}
         down = cluster_command("down", "--state-dir", str(state_dir), timeout=180)
@@ -121,6 +155,17 @@ def cluster(tmp_path_factory):
         assert not [p.pid for r in leaders if r for p in session_members(r)]
         assert not (Path(recorded.get("postgres", {}).get("data_dir", state_dir)) / "postmaster.pid").exists()
         assert cluster_command("status", "--state-dir", str(state_dir)).returncode == 1
+        # The database stays (wherever it lives), and so do the jobs' working dirs in Ray's temp dir.
+        if recorded.get("postgres", {}).get("data_dir"):
+            data = Path(recorded["postgres"]["data_dir"])
+            assert (data / "PG_VERSION").exists() and any((data / "base").iterdir()), data
+        if "kept" in locals():
+            missing = [str(p) for p in kept if not p.exists()]
+            assert not missing, missing
+        # What down kept outside the test's state dir (under /tmp) is this test's own: removed here.
+        for pointer in ("postgres-home", "ray-temp-dir"):
+            if (state_dir / pointer).exists():
+                shutil.rmtree((state_dir / pointer).read_text().strip(), ignore_errors=True)
 
 
 def placement(cluster: Cluster, actors: list[dict[str, Any]], name: str) -> dict[str, str]:
@@ -141,6 +186,52 @@ def test_token_authentication_is_on(cluster):
         http_json(f"{cluster.dashboard}/api/jobs/", token="0" * 64)
     assert wrong.value.code == 403
     assert isinstance(cluster.rest("/api/jobs/"), list)
+
+
+def test_the_mlflow_server_refuses_requests_without_the_lab_users_password(cluster, monkeypatch):
+    lab = (cluster.env["MLFLOW_TRACKING_USERNAME"], cluster.env["MLFLOW_TRACKING_PASSWORD"])
+    search = "/api/2.0/mlflow/experiments/search?max_results=1"
+    create = {"name": f"auth-{uuid.uuid4().hex[:6]}"}
+    assert cluster.mlflow("GET", search) == 401
+    assert cluster.mlflow("POST", "/api/2.0/mlflow/experiments/create", create) == 401
+    assert cluster.mlflow("GET", search, auth=(lab[0], "wrong-password")) == 401
+    assert cluster.mlflow("GET", "/health") == 200  # the only open route (health checks)
+    assert cluster.mlflow("GET", search, auth=lab) == 200
+    assert cluster.mlflow("POST", "/api/2.0/mlflow/experiments/create", create, auth=lab) == 200
+    # Another authenticated user reads the lab's runs but cannot write to them (default_permission READ).
+    admin_password = Path(cluster.state["mlflow"]["admin_password_file"]).read_text().strip()
+    mlflow_auth.ensure_user(cluster.tracking_uri, admin_password, "other", "other-password-0123456789")
+    other = ("other", "other-password-0123456789")
+    import mlflow.tracking
+
+    monkeypatch.setenv("MLFLOW_TRACKING_USERNAME", lab[0])
+    monkeypatch.setenv("MLFLOW_TRACKING_PASSWORD", lab[1])
+    client = mlflow.tracking.MlflowClient(cluster.tracking_uri)
+    run_id = client.create_run(client.get_experiment_by_name(create["name"]).experiment_id).info.run_id
+    assert cluster.mlflow("GET", f"/api/2.0/mlflow/runs/get?run_id={run_id}", auth=other) == 200
+    tag = {"run_id": run_id, "key": "stage_hash", "value": "forged"}
+    assert cluster.mlflow("POST", "/api/2.0/mlflow/runs/set-tag", tag, auth=other) == 403
+    assert cluster.mlflow("POST", "/api/2.0/mlflow/runs/set-tag", tag) == 401
+    assert cluster.mlflow("POST", "/api/2.0/mlflow/runs/set-tag", tag, auth=lab) == 200
+
+
+def test_a_working_dir_job_runs_and_writes_under_rays_temp_dir(cluster, tmp_path):
+    """`ray job submit --working-dir DIR`: Ray unpacks DIR under its temp dir and runs the job there, so what the
+    job writes to relative paths (Hydra's outputs/) lands there; `down` must leave it."""
+    (tmp_path / "job").mkdir()
+    script = "import os, pathlib; p = pathlib.Path('outputs/x.txt'); p.parent.mkdir(); p.write_text('out'); "
+    script += "print('CWD', os.getcwd()); print('USER', os.environ.get('MLFLOW_TRACKING_USERNAME'))"
+    (tmp_path / "job" / "job.py").write_text(script)
+    _, out = cluster.submit_command("workdir", ["python", "job.py"], ("--working-dir", str(tmp_path / "job")))
+    cwd = Path(next(line.split(" ", 1)[1] for line in out.splitlines() if line.startswith("CWD ")))
+    assert cwd.is_relative_to(Path(cluster.state["ray"]["temp_dir"]).resolve()) or cwd.is_relative_to(
+        cluster.state["ray"]["temp_dir"]
+    ), cwd
+    assert "USER lab" in out  # the Ray nodes hand the lab's MLflow user to every job
+    assert (cwd / "outputs" / "x.txt").read_text() == "out"
+    cluster.kept.append(cwd / "outputs" / "x.txt")
+    _, out = cluster.submit_command("cwd", ["python", "-c", "import os; print('CWD', os.getcwd())"])
+    print(f"\njob cwd with --working-dir: {cwd}; without: {out.split('CWD ', 1)[1].splitlines()[0]}")
 
 
 def test_a_training_job_spreads_its_actors_over_both_nodes_and_tracks_into_postgres(cluster, tmp_path):
@@ -178,6 +269,8 @@ def test_a_training_job_spreads_its_actors_over_both_nodes_and_tracks_into_postg
     files = {p.relative_to(stored).as_posix() for p in stored.rglob("*") if p.is_file()}
     assert {"config.json", "eval/final.json", "hydra/config.yaml"} <= files, sorted(files)
     assert any(f.startswith("checkpoints/ckpt-") and f.endswith(".pt") for f in files), sorted(files)
+    weights = torch.load(stored / "weights" / "controller.pt", weights_only=True)  # beside the pickled model
+    assert weights and all(isinstance(v, torch.Tensor) for v in weights.values())
     assert json.loads((stored / "config.json").read_text())["runtime"]["placement"] == "SPREAD"
     assert not (tmp_path / "run" / "mlruns").exists()
 

@@ -6,7 +6,9 @@ No Docker daemon runs here, so the file is checked as data; `docker compose conf
 
 from __future__ import annotations
 
+import configparser
 import os
+import re
 import shutil
 import subprocess
 import tomllib
@@ -30,10 +32,24 @@ def option(command: list[str], name: str) -> str:
     return command[command.index(name) + 1]
 
 
-def test_the_services_are_a_ray_head_workers_mlflow_and_postgres(compose):
-    assert set(compose["services"]) == {"ray-head", "ray-worker", "mlflow", "postgres"}
+SECRETS = {"RAY_AUTH_TOKEN", "MLFLOW_DB_PASSWORD", "MLFLOW_ADMIN_PASSWORD", "MLFLOW_TRACKING_PASSWORD"}
+SECRETS |= {"MLFLOW_FLASK_SECRET_KEY"}
+
+
+def mounted(service: dict, target: str) -> Path:
+    """The file of this repository that `service` mounts at `target` (read-only)."""
+    for volume in service["volumes"]:
+        source, _, rest = volume.partition(":")
+        if rest.split(":")[0] == target:
+            assert rest.endswith(":ro"), volume
+            return (COMPOSE.parent / source).resolve()
+    raise AssertionError(f"nothing mounted at {target}: {service['volumes']}")
+
+
+def test_the_services_are_a_ray_head_workers_mlflow_its_user_and_postgres(compose):
+    assert set(compose["services"]) == {"ray-head", "ray-worker", "mlflow", "mlflow-user", "postgres"}
     assert compose["services"]["postgres"]["image"].startswith("postgres:")
-    for name in ("ray-head", "ray-worker", "mlflow"):  # the project's image, built from docker/Dockerfile
+    for name in ("ray-head", "ray-worker", "mlflow", "mlflow-user"):  # the project's image, from docker/Dockerfile
         build = compose["services"][name]["build"]
         assert (COMPOSE.parent / build["context"] / build["dockerfile"]).resolve() == ROOT / "docker" / "Dockerfile"
         assert compose["services"][name]["image"] == "mocap-orchestrator:latest"
@@ -60,8 +76,56 @@ def test_only_the_dashboard_and_mlflow_are_published_and_only_on_loopback(compos
         "ray-head": [f"127.0.0.1:{dashboard}:{dashboard}"],
         "ray-worker": [],
         "mlflow": [f"127.0.0.1:{mlflow_port}:{mlflow_port}"],
+        "mlflow-user": [],
         "postgres": [],
     }
+    assert not any("expose" in s or s.get("network_mode") == "host" for s in compose["services"].values())
+
+
+def test_mlflow_runs_the_basic_auth_app_with_read_for_all_and_no_password_in_its_config(compose):
+    mlflow = compose["services"]["mlflow"]
+    assert option(mlflow["command"], "--app-name") == "basic-auth"
+    config_path = mounted(mlflow, mlflow["environment"]["MLFLOW_AUTH_CONFIG_PATH"])
+    assert config_path.parent == ROOT / "docker"
+    config = configparser.ConfigParser()
+    config.read(config_path)
+    auth = dict(config["mlflow"])
+    assert auth["default_permission"] == "READ"  # an authenticated user cannot write to another's runs
+    assert auth["database_uri"] == "postgresql+psycopg2://mlflow@postgres:5432/mlflow_auth"
+    assert "admin_password" not in auth and auth["admin_username"] == "admin"
+    assert int(auth["auth_cache_ttl_seconds"]) > 0  # a checked password is remembered (scrypt per request is slow)
+    # The admin's password and Flask's CSRF key: from the environment, required (no default, hence no known one).
+    assert mlflow["environment"]["MLFLOW_AUTH_ADMIN_PASSWORD"].startswith("${MLFLOW_ADMIN_PASSWORD:?")
+    assert mlflow["environment"]["MLFLOW_FLASK_SERVER_SECRET_KEY"].startswith("${MLFLOW_FLASK_SECRET_KEY:?")
+    # The auth app's database exists: the postgres image runs this script on an empty volume.
+    init = mounted(compose["services"]["postgres"], "/docker-entrypoint-initdb.d/10-mlflow-auth.sql")
+    assert "CREATE DATABASE mlflow_auth;" in init.read_text()
+
+
+def test_jobs_log_as_the_lab_user_that_mlflow_user_creates_before_ray_starts(compose):
+    services = compose["services"]
+    user = services["mlflow-user"]
+    assert user["command"][:3] == ["python", "-m", "orchestrator.cluster.mlflow_auth"]
+    assert user["depends_on"]["mlflow"]["condition"] == "service_healthy"
+    assert services["ray-head"]["depends_on"]["mlflow-user"]["condition"] == "service_completed_successfully"
+    for name in ("ray-head", "ray-worker", "mlflow-user"):
+        env = services[name]["environment"]
+        assert env["MLFLOW_TRACKING_USERNAME"] == user["environment"]["MLFLOW_TRACKING_USERNAME"]
+        assert env["MLFLOW_TRACKING_PASSWORD"].startswith("${MLFLOW_TRACKING_PASSWORD:?")
+    assert (
+        user["environment"]["MLFLOW_AUTH_ADMIN_PASSWORD"]
+        == services["mlflow"]["environment"]["MLFLOW_AUTH_ADMIN_PASSWORD"]
+    )
+
+
+def test_no_secret_is_written_in_the_file_or_in_a_uri(compose):
+    for name, service in compose["services"].items():
+        for key, value in (service.get("environment") or {}).items():
+            if re.search("PASSWORD|TOKEN|SECRET", key):
+                variable = re.fullmatch(r"\$\{(\w+):\?[^}]*\}", str(value))
+                assert variable and variable.group(1) in SECRETS, f"{name}.{key}: {value}"
+        for arg in service.get("command") or []:
+            assert not re.search(r"://[^/@\s]*:[^/@\s]*@", str(arg)), f"{name}: credentials in {arg}"
 
 
 def test_mlflow_serves_postgres_runs_and_proxies_artifacts_into_a_volume(compose):
@@ -85,6 +149,7 @@ def test_the_image_installs_the_project_with_its_postgres_driver():
     assert "-e ." in dockerfile and "COPY conf conf" in dockerfile
     dependencies = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["dependencies"]
     assert any(d.startswith("psycopg2") for d in dependencies)
+    assert any(d.startswith("mlflow[auth]") for d in dependencies)  # Flask-WTF, which the basic-auth app imports
     assert any(d.startswith("ray[default]") for d in dependencies)  # the dashboard and jobs API
 
 
@@ -99,10 +164,14 @@ def test_compose_config_accepts_the_file():
     client = compose_client()
     if client is None:
         pytest.skip("no Compose client (docker compose or docker-compose) installed")
-    env = dict(os.environ, RAY_AUTH_TOKEN="0" * 64, MLFLOW_DB_PASSWORD="x")
+    env = dict(os.environ, RAY_AUTH_TOKEN="0" * 64, MLFLOW_DB_PASSWORD="x", MLFLOW_ADMIN_PASSWORD="a")
+    env.update(MLFLOW_TRACKING_PASSWORD="b", MLFLOW_FLASK_SECRET_KEY="c")
     proc = subprocess.run([*client, "-f", str(COMPOSE), "config"], capture_output=True, text=True, env=env)
     assert proc.returncode == 0, proc.stderr
     assert "ray-worker" in proc.stdout
     missing = {k: v for k, v in env.items() if k != "RAY_AUTH_TOKEN"}
     proc = subprocess.run([*client, "-f", str(COMPOSE), "config"], capture_output=True, text=True, env=missing)
     assert proc.returncode != 0 and "RAY_AUTH_TOKEN" in proc.stderr  # no cluster without a token
+    missing = {k: v for k, v in env.items() if k != "MLFLOW_ADMIN_PASSWORD"}
+    proc = subprocess.run([*client, "-f", str(COMPOSE), "config"], capture_output=True, text=True, env=missing)
+    assert proc.returncode != 0 and "MLFLOW_ADMIN_PASSWORD" in proc.stderr  # nor without the admin's password
