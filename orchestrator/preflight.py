@@ -6,7 +6,8 @@ anything is written to the run directory, so that bad input leaves everything al
 
 - the character file is our humanoid's skeleton (`workers.body.character`) and every clip loads and is
   plausible (`workers.motion.clip.check_plausible`): the same checks as `python -m orchestrator.clips check`;
-- `tracking.uri` has a scheme MLflow knows (checked at composition too; a sweep point takes its parent's);
+- `tracking.uri` has a scheme MLflow knows (checked at composition too; a sweep point takes its parent's),
+  and an MLflow server there that asks for a user accepts this process's (MLFLOW_TRACKING_USERNAME/PASSWORD);
 - `runtime.address` answers within `runtime.connect_timeout_s` (runtime=ray);
 - a GPU asked for (`runtime.learner_device=cuda`, `runtime.learner_gpus`) is one this machine has (the
   local runtime, or a Ray started for the run) or, at a cluster's `runtime.address`, one the cluster has;
@@ -20,7 +21,11 @@ anything is written to the run directory, so that bad input leaves everything al
 
 from __future__ import annotations
 
+import base64
 import json
+import os
+import urllib.error
+import urllib.request
 from pathlib import Path
 from urllib.parse import urlsplit, urlunsplit
 
@@ -47,6 +52,7 @@ def check(cfg: Config) -> None:
         problem = tracking_uri_error(cfg.tracking.uri)
         if problem:
             raise ConfigError(f"tracking.uri: {problem}")
+        tracking_server(cfg.tracking.uri)
     learner_devices(cfg)
     if cfg.algo.needs:
         from orchestrator.stages import plan  # loads mlflow: only for a method with upstream stages
@@ -63,6 +69,34 @@ def check(cfg: Config) -> None:
     if cfg.resume:
         resume_run(cfg)
         resume_checkpoint(cfg, character)
+
+
+def tracking_server(uri: str, timeout_s: float = 3.0) -> None:
+    """InputError when the MLflow server at `uri` (http or https) refuses this process's credentials
+    (MLFLOW_TRACKING_USERNAME / MLFLOW_TRACKING_PASSWORD, or none): every record would wait in the spool for
+    ever. A server that does not answer is left to the tracker, which spools until it is back."""
+    if urlsplit(uri).scheme not in ("http", "https"):
+        return
+    user, password = os.environ.get("MLFLOW_TRACKING_USERNAME"), os.environ.get("MLFLOW_TRACKING_PASSWORD")
+    headers = {}
+    if user is not None and password is not None:
+        headers["Authorization"] = "Basic " + base64.b64encode(f"{user}:{password}".encode()).decode()
+    url = f"{uri.rstrip('/')}/api/2.0/mlflow/experiments/search?max_results=1"
+    try:
+        urllib.request.urlopen(urllib.request.Request(url, headers=headers), timeout=timeout_s).close()
+    except urllib.error.HTTPError as e:
+        where = f"tracking.uri={_no_password(uri)}"
+        if e.code == 401 and not headers:
+            raise InputError(
+                f"{where}: the server asks for a user: set MLFLOW_TRACKING_USERNAME and MLFLOW_TRACKING_PASSWORD "
+                '(for `make cluster-up`: eval "$(python -m orchestrator.cluster env)")'
+            ) from None
+        if e.code in (401, 403):
+            raise InputError(
+                f"{where}: the server refuses user {user!r} ({e.code}); check MLFLOW_TRACKING_PASSWORD"
+            ) from None
+    except (OSError, ValueError):
+        return  # not answering (yet): the tracker spools
 
 
 def learner_devices(cfg: Config) -> None:
