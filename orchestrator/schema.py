@@ -332,10 +332,20 @@ class TrackingConfig:
     log_model: bool = True
     # Seconds between system metrics (CPU, memory, disk, network: MLflow's system/ metrics); 0: none.
     system_metrics_s: float = 10.0
+    # Seconds an artifact upload (a checkpoint, a video) may wait on the store per request; other requests get 3 s.
+    artifact_timeout_s: int = 60
+    # Uploads in a row that time out before the run stops trying: the files wait in the run directory's
+    # tracking spool for orchestrator.tracking.mlflow.replay_spool, and the run ends without them.
+    artifact_tries: int = 3
 
     def __post_init__(self) -> None:
         if self.uri is not None and (problem := tracking_uri_error(self.uri)):
             raise ConfigError(f"tracking.uri: {problem}")
+        if self.artifact_timeout_s < 1 or self.artifact_tries < 1:
+            raise ConfigError(
+                f"tracking.artifact_timeout_s and tracking.artifact_tries must be at least 1, "
+                f"got {self.artifact_timeout_s} and {self.artifact_tries}"
+            )
 
 
 @dataclass
