@@ -12,7 +12,7 @@ import math
 from orchestrator.runtime.base import Runtime
 from orchestrator.schema import Config
 from orchestrator.tracking.base import RunLogger
-from orchestrator.tracking.uri import redact, store_uri
+from orchestrator.tracking.uri import redact, scrub, store_uri
 
 # Spread and per-clip breakdowns stay in MLflow; the table keeps one line per measure.
 HIDDEN_SUFFIXES = ("_std", "_median")
@@ -75,7 +75,7 @@ def artifact_location(cfg: Config, logger: RunLogger) -> str | None:
 def closing(
     cfg: Config, logger: RunLogger, baseline: dict[str, float], final: dict[str, float], model_uri: str | None
 ) -> str:
-    lines = [f"\n{cfg.algo.name} finished: {cfg.tracking.run_name or ''}".rstrip()]
+    lines = [f"\n{cfg.algo.name} finished: {scrub(cfg.tracking.run_name or '')}".rstrip()]
     rows = table(baseline, final)
     if rows:
         lines += ["", rows]

@@ -27,8 +27,9 @@ Choices worth knowing:
   under `<run_dir>/tracking-artifacts/` and delete them once uploaded.
 - Artifacts have their own timeout (`artifact_timeout_s`) and, when they fail, a spool of their own, so that a
   slow artifact store never holds up the run's metrics or its end (see `orchestrator.tracking.spool`).
-- The tracker writes no credential of its store: `hide` masks the URI's password in every log record, and
-  param and tag values and the text of `log_dict`/`log_text` pass through `scrub`.
+- The tracker writes no credential of its store: `hide` masks the URI's password in every log record; the run
+  name, param and tag values and the text of `log_dict`/`log_text` pass through `scrub`; an HTTP server's user
+  and password go to MLflow through its environment variables (`credentials_to_env`), and `uri` is without them.
 - One live tracker per run directory: the spool is guarded by a lock within the process only.
 """
 
@@ -59,7 +60,7 @@ from orchestrator.tracking.spool import (  # sets MLflow's client defaults befor
     Spool,
     refused,
 )
-from orchestrator.tracking.uri import embedded_uri, hide, redact, scrub
+from orchestrator.tracking.uri import credentials_to_env, embedded_uri, hide, redact, scrub
 
 __all__ = ["EXPERIMENT_TAGS", "MlflowLogger", "Sender", "Spool", "replay_spool", "store_artifacts"]
 
@@ -112,8 +113,8 @@ class MlflowLogger(RunLogger):
             raise ValueError(f"flush_every must be at least 1, got {flush_every}")
         self.run_dir = Path(run_dir).resolve()
         self.run_dir.mkdir(parents=True, exist_ok=True)
-        self.uri = uri or embedded_uri(self.run_dir)
-        hide(self.uri)
+        hide(uri)
+        self.uri = credentials_to_env(uri or embedded_uri(self.run_dir))
         self.flush_every = flush_every
         self._sender = Sender(
             self.uri,
@@ -139,6 +140,7 @@ class MlflowLogger(RunLogger):
         if parent_run_id is not None:
             tags["mlflow.parentRunId"] = parent_run_id
         artifacts = (self.run_dir / "mlartifacts").as_uri() if uri is None else store_artifacts(uri)
+        run_name = None if run_name is None else scrub(run_name)  # a run name made from the overrides
         create = {"experiment": experiment, "artifact_location": artifacts, "run_name": run_name, "tags": tags}
         self._sender.submit({"op": "create", "run": self._key, "start_time": _now_ms(), **create})
 

@@ -58,7 +58,7 @@ from mlflow.tracking import MlflowClient  # noqa: E402
 
 from orchestrator.tracking.base import EXPERIMENT_TAGS  # noqa: E402
 from orchestrator.tracking.spoolfile import Spool  # noqa: E402
-from orchestrator.tracking.uri import redact  # noqa: E402
+from orchestrator.tracking.uri import credentials_to_env, redact  # noqa: E402
 
 ARTIFACT_DIR = "tracking-artifacts"  # under the run directory, beside the spool: files the tracker wrote for upload
 
@@ -108,7 +108,7 @@ class Sender:
         self.uri = uri
         self.retry_interval_s = retry_interval_s
         self.max_retry_interval_s = max_retry_interval_s
-        self.client = MlflowClient(tracking_uri=uri)
+        self.client = MlflowClient(tracking_uri=credentials_to_env(uri))
         self.spool = Spool(spool_path)
         spool_path = Path(spool_path)
         self.artifacts = Spool(spool_path.with_name(f"{spool_path.stem}-artifacts{spool_path.suffix}"))

@@ -5,9 +5,10 @@ the embedded SQLite store `mlflow.db` in its directory. `tracking_uri_error` is 
 
 A URI may carry a credential (`postgresql://user:pw@host/db`, `http://user:pw@host`, `?token=`): `redact` is
 the URI fit to print, `scrub` any text with the credentials of the URIs in it (and of those passed to `hide`)
-masked, and `hide(uri)` also masks them in every log record of the process (tracebacks included). MLflow reads
-an HTTP server's credentials from MLFLOW_TRACKING_USERNAME / MLFLOW_TRACKING_PASSWORD too, which keeps them out
-of the URI altogether.
+masked, and `hide(uri)` also masks them in every log record of the process (tracebacks included).
+`credentials_to_env` moves an HTTP server's user and password into MLFLOW_TRACKING_USERNAME /
+MLFLOW_TRACKING_PASSWORD, where MLflow reads them, so that the URLs MLflow builds itself (in its errors, and in
+the "View run at" lines it writes to stdout) carry none.
 """
 
 from __future__ import annotations
@@ -134,6 +135,20 @@ def hide(uri: str | None) -> None:
         if not _HIDDEN:
             _install_record_factory()
         _HIDDEN.update(secrets)
+
+
+def credentials_to_env(uri: str) -> str:
+    """`uri` without its user and password, which go to MLFLOW_TRACKING_USERNAME / MLFLOW_TRACKING_PASSWORD, for an
+    HTTP(S) tracking server; any other URI, or one whose credentials differ from those already set there, as is."""
+    parts = urlsplit(uri)
+    if parts.scheme not in ("http", "https") or parts.password is None:
+        return uri
+    user, password = unquote(parts.username or ""), unquote(parts.password)
+    wanted = {"MLFLOW_TRACKING_USERNAME": user, "MLFLOW_TRACKING_PASSWORD": password}
+    if any(os.environ.get(key, value) != value for key, value in wanted.items()):
+        return uri
+    os.environ.update(wanted)
+    return uri.replace(parts.netloc, parts.netloc.rpartition("@")[2], 1)
 
 
 def _install_record_factory() -> None:

@@ -4,6 +4,7 @@ tags and text artifacts (orchestrator.tracking.uri; the tracker on a real SQLite
 from __future__ import annotations
 
 import logging
+import os
 from dataclasses import asdict
 
 import pytest
@@ -14,7 +15,15 @@ from orchestrator.console import mlflow_line
 from orchestrator.schema import ConfigError
 from orchestrator.tracking.base import flatten
 from orchestrator.tracking.mlflow import MlflowLogger
-from orchestrator.tracking.uri import hide, redact, scrub, scrub_tree, tracking_uri_error, uri_secrets
+from orchestrator.tracking.uri import (
+    credentials_to_env,
+    hide,
+    redact,
+    scrub,
+    scrub_tree,
+    tracking_uri_error,
+    uri_secrets,
+)
 
 
 @pytest.mark.parametrize(
@@ -96,3 +105,13 @@ def test_the_tracker_writes_no_credential_of_its_store_in_params_tags_or_text(tm
     assert all("Wz4Tq9vB" not in p.read_text() for p in stored)
     assert "carol:***@" in next(p for p in stored if p.name == "overrides.yaml").read_text()
     assert b"Wz4Tq9vB" not in (tmp_path / "mlflow.db").read_bytes()
+
+
+def test_an_http_servers_credentials_go_to_mlflows_environment_variables(monkeypatch):
+    monkeypatch.delenv("MLFLOW_TRACKING_USERNAME", raising=False)
+    monkeypatch.delenv("MLFLOW_TRACKING_PASSWORD", raising=False)
+    assert credentials_to_env("http://dan:p%40ss9@127.0.0.1:5000") == "http://127.0.0.1:5000"
+    assert (os.environ["MLFLOW_TRACKING_USERNAME"], os.environ["MLFLOW_TRACKING_PASSWORD"]) == ("dan", "p@ss9")
+    # Other credentials already set there win: this URI keeps its own (masked wherever it is shown).
+    assert credentials_to_env("http://eve:other@h:1") == "http://eve:other@h:1"
+    assert credentials_to_env("postgresql://u:pw@h/db") == "postgresql://u:pw@h/db"  # a database reads its URI
