@@ -67,8 +67,9 @@ MASK = "***"
 SECRET_QUERY_KEYS = ("password", "passwd", "pwd", "token", "secret")
 # Shorter secrets are masked only where they stand in a URI: masking every "pw" in free text would mangle it.
 MIN_SECRET_LENGTH = 4
-# The password of a URI's user information inside free text: `scheme://user:` then the password up to `@`.
-_USERINFO = re.compile(r"(?P<head>\b[A-Za-z][A-Za-z0-9+.-]*://[^\s/:@]*:)[^\s/@]+@")
+# The password of a URI's user information inside free text: `scheme://user:` then the password up to `@`
+# (also as Hydra logs an override, its colons escaped: `http\://user\:pw@host`).
+_USERINFO = re.compile(r"(?P<head>\b[A-Za-z][A-Za-z0-9+.-]*\\?://[^\s/:@\\]*\\?:)[^\s/@]+@")
 _HIDDEN: set[str] = set()  # the secrets that `scrub` masks wherever they stand
 _HIDE_LOCK = threading.Lock()
 

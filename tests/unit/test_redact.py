@@ -52,6 +52,11 @@ def test_the_secrets_of_a_uri_are_its_password_as_written_and_decoded():
 def test_scrub_masks_any_uri_password_in_text_and_the_hidden_secrets_anywhere():
     text = "overrides: [tracking.uri=postgresql://u:zz9q@h/db, seed=1] and http://a:b@c:1/x"
     assert scrub(text) == "overrides: [tracking.uri=postgresql://u:***@h/db, seed=1] and http://a:***@c:1/x"
+    # Hydra's launcher logs each point's overrides with the colons escaped.
+    assert (
+        scrub(r"#0 : tracking.uri=http\://u\:pw@127.0.0.1\:5000 seed=0")
+        == r"#0 : tracking.uri=http\://u\:***@127.0.0.1\:5000 seed=0"
+    )
     hide("postgresql://u:Opaque%2F77@h/db")
     # Decoded, outside any URI (as a driver's error message may quote it): masked once hidden.
     assert scrub("auth failed for password Opaque/77") == "auth failed for password ***"
