@@ -128,13 +128,16 @@ def scrub_tree(obj: Any) -> Any:
 
 
 def hide(uri: str | None) -> None:
-    """Mask `uri`'s credentials wherever `scrub` is applied, and in every log record of this process from now on."""
+    """Mask `uri`'s credentials wherever `scrub` is applied, and in every log record of this process from now on
+    (and keep MLflow from printing its server's URL)."""
     secrets = {s for s in uri_secrets(uri) if len(s) >= MIN_SECRET_LENGTH}
     if not secrets:
         return
     with _HIDE_LOCK:
         if not _HIDDEN:
             _install_record_factory()
+            # MLflow writes "View run ... at: <server URL>" to stdout itself, past logging; our own lines say where.
+            os.environ.setdefault("MLFLOW_SUPPRESS_PRINTING_URL_TO_STDOUT", "true")
         _HIDDEN.update(secrets)
 
 
