@@ -92,7 +92,8 @@ class Sender:
     `submit` sends a record at once when the spool is empty (or can be emptied first), and otherwise
     appends it; `drain` replays the spool. Runs created from a spooled `create` record get their id
     in `ids` (placeholder key -> run id). With `background`, a daemon thread drains the spool while it
-    is not empty (`stop` ends it).
+    is not empty (`stop` ends it). Artifacts that fail wait in the side spool `artifacts`, which only the
+    background thread and `drain(force=True)` upload (the module's docstring says how long they are tried).
     """
 
     def __init__(
@@ -127,14 +128,17 @@ class Sender:
         self._wake = threading.Event()  # something was spooled
         self._stopped = threading.Event()
         self._thread: threading.Thread | None = None
+        if self.artifacts.count:  # left by an earlier tracker: uploaded in the background, never inline
+            self._wake_thread()
 
     def submit(self, record: dict) -> None:
         """Send `record` now, or append it to the spool if the backend is (or recently was) away, or the
         spool is being replayed. Never raises: a record that can be neither sent nor spooled (disk full)
         is logged and lost."""
         try:
-            if self._thread is None and self._due() == 0.0:
-                self.drain()  # no background thread (yet): replay inline
+            if self._thread is None and self.spool.count and time.monotonic() >= self._retry_at:
+                with self.send_lock:  # no background thread (yet): replay inline, but no artifact upload
+                    self._drain(artifacts=False)
             if self._spooled(record):  # without waiting for a replay in progress
                 return
             with self.send_lock:  # free but for a moment: nothing is being replayed
@@ -180,7 +184,7 @@ class Sender:
 
     # ---------------------------------------------------------------- under send_lock
 
-    def _drain(self, force: bool = False) -> bool:
+    def _drain(self, force: bool = False, artifacts: bool = True) -> bool:
         with self.spool.lock:
             waiting = self.spool.count
             if waiting and not force and time.monotonic() < self._retry_at:
@@ -191,7 +195,7 @@ class Sender:
             if rest != records or not records:  # (none: every line was damaged) and what was appended meanwhile
                 self.spool.replace(rest, read_up_to=size, resolve=self._resolved)
                 log.info("tracking: replayed %d spooled records, %d left", len(records) - len(rest), self.spool.count)
-        if not self.spool.count:
+        if artifacts and not self.spool.count:
             self._drain_artifacts(force)
         return self.pending() == 0
 
@@ -244,6 +248,10 @@ class Sender:
             log.warning("tracking: an artifact upload failed (%s); artifacts wait in %s", err, self.artifacts.path)
         self._artifact_failing = True
 
+    def _artifacts_held(self) -> bool:
+        """Whether a new artifact goes to the side spool untried: others wait there, or uploads are failing."""
+        return bool(self.artifacts.count) or self._artifact_retry_at > time.monotonic() or self.artifacts_given_up()
+
     def _due(self) -> float | None:
         """When (time.monotonic()) a replay is due, 0.0 if now; None if nothing waits (or only given-up artifacts)."""
         now = time.monotonic()
@@ -267,11 +275,15 @@ class Sender:
     def _spool(self, records: list[dict], spool: Spool | None = None) -> None:
         if records:
             (spool or self.spool).append(records)
-            if self.background and not self._stopped.is_set():
-                if self._thread is None:
-                    self._thread = threading.Thread(target=self._run, name="tracking-spool", daemon=True)
-                    self._thread.start()
-                self._wake.set()
+            self._wake_thread()
+
+    def _wake_thread(self) -> None:
+        """Start the background thread (with `background`) or wake it: something was spooled."""
+        if self.background and not self._stopped.is_set():
+            if self._thread is None:
+                self._thread = threading.Thread(target=self._run, name="tracking-spool", daemon=True)
+                self._thread.start()
+            self._wake.set()
 
     def _process(self, queue: deque[dict]) -> list[dict]:
         """Send records from the front of `queue` until it is empty or the backend fails; return the rest.
@@ -286,7 +298,7 @@ class Sender:
         while queue:
             batch, used = _merge_metrics(queue)
             try:
-                if batch["op"] == "artifact" and (self.artifacts.count or self._artifact_retry_at > time.monotonic()):
+                if batch["op"] == "artifact" and self._artifacts_held():
                     aside.append({**batch, "run": self._run_id(batch)})  # behind those already waiting
                     queue.popleft()
                     continue
@@ -316,7 +328,7 @@ class Sender:
                 self._artifact_timeouts, self._artifact_failing = 0, False
             if self._failures:
                 self._failures, self._retry_at = 0, 0.0
-                log.warning("tracking: %s answers again", self.uri)
+                log.warning("tracking: %s answers again", redact(self.uri))
         return []
 
     # ---------------------------------------------------------------- the background thread
