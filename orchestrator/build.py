@@ -24,7 +24,7 @@ from orchestrator.provenance import git_commit
 from orchestrator.runtime.base import Runtime
 from orchestrator.schema import Config
 from orchestrator.tracking.base import NoOpLogger, RunLogger, flatten
-from orchestrator.tracking.uri import store_uri
+from orchestrator.tracking.uri import scrub, scrub_tree, store_uri
 from orchestrator.trainer import Trainer
 from orchestrator.upstream import StageError, Upstream
 from orchestrator.world import load_character, load_character_and_library
@@ -52,6 +52,8 @@ def build_logger(
         parent_run_id=parent_run_id,
         tags=tags,
         run_dir=Path(cfg.run_dir),
+        artifact_timeout_s=cfg.tracking.artifact_timeout_s,
+        artifact_tries=cfg.tracking.artifact_tries,
     )
 
 
@@ -126,11 +128,11 @@ def run(
     tags = {"stage_hash": stage_hash, **stages.lineage_tags(upstream)}
     logger = build_logger(cfg, run_id, parent_run_id, tags)
     if run_id is None:
-        resolved: dict[str, Any] = asdict(cfg)
+        resolved: dict[str, Any] = scrub_tree(asdict(cfg))  # tracking.uri's password masked
         logger.log_params(flatten(resolved))
         logger.log_dict(resolved, "config.json")
-        for path in hydra_record():
-            logger.log_artifact(str(path), "hydra")
+        for path in hydra_record():  # as typed, the overrides may hold the password: a scrubbed copy
+            logger.log_text(scrub(path.read_text()), f"hydra/{path.name}")
     run_file.write_text(json.dumps({"run_id": logger.run_id}))
     runtime = build_runtime(cfg)
     status = "FAILED"

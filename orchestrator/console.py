@@ -1,7 +1,7 @@
 """What a run prints when it starts and when it ends.
 
-At the start (once the components are up): where to watch it, the MLflow UI (or server) and the
-Ray dashboard with how to get its token. At the end: the final evaluation beside the untrained
+At the start (once the components are up): where to watch it, the MLflow UI (or server: its URI's password
+masked) and the Ray dashboard with how to get its token. At the end: the final evaluation beside the untrained
 policy's (`eval.at_start`), where the figures, videos and model are, and the `mlflow ui` line.
 """
 
@@ -12,14 +12,15 @@ import math
 from orchestrator.runtime.base import Runtime
 from orchestrator.schema import Config
 from orchestrator.tracking.base import RunLogger
-from orchestrator.tracking.uri import store_uri
+from orchestrator.tracking.uri import redact, scrub, store_uri
 
 # Spread and per-clip breakdowns stay in MLflow; the table keeps one line per measure.
 HIDDEN_SUFFIXES = ("_std", "_median")
 
 
 def mlflow_line(cfg: Config, run_id: str | None) -> str:
-    uri = store_uri(cfg.tracking.uri, cfg.run_dir)
+    """Where to look at the run in MLflow: the server, or the `mlflow ui` line for a store (its password masked)."""
+    uri = redact(store_uri(cfg.tracking.uri, cfg.run_dir))
     run = f"run {run_id}" if run_id else "run not created yet: the server is away, records are spooled"
     if uri.startswith("http"):
         return f"MLflow: {uri}  ({run})"
@@ -74,7 +75,7 @@ def artifact_location(cfg: Config, logger: RunLogger) -> str | None:
 def closing(
     cfg: Config, logger: RunLogger, baseline: dict[str, float], final: dict[str, float], model_uri: str | None
 ) -> str:
-    lines = [f"\n{cfg.algo.name} finished: {cfg.tracking.run_name or ''}".rstrip()]
+    lines = [f"\n{cfg.algo.name} finished: {scrub(cfg.tracking.run_name or '')}".rstrip()]
     rows = table(baseline, final)
     if rows:
         lines += ["", rows]

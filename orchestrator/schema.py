@@ -339,6 +339,11 @@ class TrackingConfig:
     # What of the code a stage hash covers: "version" (the package's; commits between versions reuse stages)
     # or "commit" (the git commit: every commit retrains every stage).
     stage_code: str = "version"
+    # Seconds an artifact upload (a checkpoint, a video) may wait on the store per request; other requests get 3 s.
+    artifact_timeout_s: int = 60
+    # Uploads in a row that time out before the run stops trying: the files wait in the run directory's
+    # tracking spool for orchestrator.tracking.mlflow.replay_spool, and the run ends without them.
+    artifact_tries: int = 3
 
     def __post_init__(self) -> None:
         if self.uri is not None and (problem := tracking_uri_error(self.uri)):
@@ -348,6 +353,11 @@ class TrackingConfig:
         for i, name in enumerate(self.reuse_from):
             if not str(name).strip():
                 raise ConfigError(f"tracking.reuse_from[{i}] is empty (an experiment's name, or '*')")
+        if self.artifact_timeout_s < 1 or self.artifact_tries < 1:
+            raise ConfigError(
+                f"tracking.artifact_timeout_s and tracking.artifact_tries must be at least 1, "
+                f"got {self.artifact_timeout_s} and {self.artifact_tries}"
+            )
 
 
 @dataclass

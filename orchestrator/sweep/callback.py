@@ -6,8 +6,12 @@ it (`parent_of`) to log into the same store as a child. Without `tracking.uri` t
 store is one SQLite file in the sweep directory. The basic launcher's sequential
 jobs write it directly; when a launcher runs jobs in parallel (e.g.
 `hydra/launcher=joblib`), SQLite would lock under the concurrent writers, so the
-callback starts an MLflow server on 127.0.0.1 in front of that file for the
-sweep's duration and the jobs log through it.
+callback starts an MLflow server on 127.0.0.1 in front of that file (or of the
+`sqlite:///` file given as `tracking.uri`) for the sweep's duration and the jobs
+log through it.
+A sweep that does not reach its end (a point raised, and Hydra skips
+`on_multirun_end`; Ctrl-C) closes its parent run FAILED and stops that server
+when the process exits.
 When the multirun ends, the children's final metrics are gathered into a table
 (JSON and Markdown) and a figure, with the learning curves of the preset's
 `curves` and the paper's result beside ours (`orchestrator.sweep.report`), logged to
@@ -18,6 +22,7 @@ figures and table of statements (`orchestrator.sweep.tasks`, `orchestrator.sweep
 
 from __future__ import annotations
 
+import atexit
 import json
 import socket
 from pathlib import Path
@@ -27,7 +32,7 @@ from hydra.experimental.callback import Callback
 from omegaconf import DictConfig
 
 from orchestrator.sweep import amp, physicsvae, report, tasks
-from orchestrator.tracking.uri import store_uri
+from orchestrator.tracking.uri import hide, redact, store_uri
 
 SWEEP_FILE = "sweep.json"
 SEQUENTIAL_LAUNCHER = "hydra._internal.core_plugins.basic_launcher.BasicLauncher"
@@ -108,12 +113,14 @@ class SweepCallback(Callback):
 
         if not config.tracking.enabled:
             return
+        atexit.register(self.abandon)  # unregistered at the sweep's end
         self.sweep_dir = Path(config.hydra.sweep.dir)
         self.sweep_dir.mkdir(parents=True, exist_ok=True)
         store = store_uri(config.tracking.uri, self.sweep_dir)
+        hide(store)  # Hydra's launcher logs each point's overrides
         uri = store
         experiment = config.tracking.experiment or config.preset
-        if config.tracking.uri is None and runs_in_parallel(config):
+        if store.startswith("sqlite:///") and runs_in_parallel(config):
             from orchestrator.tracking.query import ensure_experiment
             from orchestrator.tracking.server import start_local_server
 
@@ -123,7 +130,7 @@ class SweepCallback(Callback):
             ensure_experiment(store, experiment)
 
             self.server = start_local_server(
-                store, self.sweep_dir / "mlartifacts", log_path=self.sweep_dir / "mlflow-server.log"
+                store, sqlite_artifacts(store), log_path=self.sweep_dir / "mlflow-server.log"
             )
             uri = self.server.uri
             print(f"sweep: parallel jobs log through the tracking server at {uri}")
@@ -187,8 +194,19 @@ class SweepCallback(Callback):
             "stages.json",
         )
 
+    def abandon(self) -> None:
+        """The sweep ends without `on_multirun_end` (at exit): its parent run FAILED, its server stopped."""
+        if self.logger is not None:
+            self.logger.close("FAILED")  # no-op if closed already
+            self.logger = None
+        if self.server is not None:
+            self.server.stop()
+            self.server = None
+
     def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
         if self.logger is None:
+            atexit.unregister(self.abandon)
+            self.abandon()
             return
         from orchestrator.tracking.query import child_runs, metric_histories
 
@@ -240,14 +258,20 @@ class SweepCallback(Callback):
             self.logger.log_artifact(str(table))
             print(f"sweep {self.logger.run_id}: {len(rows)} runs\n" + text)
         self.logger.close("FINISHED")
+        atexit.unregister(self.abandon)
         store = store_uri(config.tracking.uri, self.sweep_dir)
-        look = f"mlflow ui --backend-store-uri {store} --host 127.0.0.1"
+        look = f"mlflow ui --backend-store-uri {redact(store)} --host 127.0.0.1"
         if self.server is not None:
             self.server.stop()
             self.server = None
-            look += f" --artifacts-destination {(self.sweep_dir / 'mlartifacts').resolve()}"
-        where = f"MLflow: {store}" if store.startswith("http") else f"MLflow UI: {look}"
+            look += f" --artifacts-destination {sqlite_artifacts(store)}"
+        where = f"MLflow: {redact(store)}" if store.startswith("http") else f"MLflow UI: {look}"
         print(f"{where}  (sweep {self.logger.run_id})")
+
+
+def sqlite_artifacts(store: str) -> Path:
+    """The artifacts beside a `sqlite:///` store, as `orchestrator.tracking.base.store_artifacts` places them."""
+    return (Path(store.removeprefix("sqlite:///")).parent / "mlartifacts").resolve()
 
 
 def claims_table(name: str, rows: list[dict[str, Any]], compare_by: str, facet_by: str | None) -> str:

@@ -1,7 +1,7 @@
-"""Tracking: the `RunLogger` interface and its no-op twin (`base`), the MLflow logger (`mlflow`) with
-its disk spool drained in the background (`spool`), a local MLflow server for parallel jobs
-(`server`), the store's URIs and which ones MLflow can use (`uri`), runs read back from a store
-(`query`), system metrics (`system`) and the trained policy as an MLflow model (`model`).
+"""Tracking: the `RunLogger` interface and its no-op twin (`base`), the MLflow logger (`mlflow`) with its disk
+spool drained in the background (`spool`, the file itself in `spoolfile`), a local MLflow server for parallel
+jobs (`server`), the store's URIs, which ones MLflow can use and their credentials masked (`uri`), runs read
+back from a store (`query`), system metrics (`system`) and the trained policy as an MLflow model (`model`).
 
 This is the only package that imports mlflow, and importing `orchestrator.tracking`,
 `orchestrator.tracking.base` or `orchestrator.tracking.uri` does not load it (the server runs as a

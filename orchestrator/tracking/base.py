@@ -52,6 +52,13 @@ class RunLogger(abc.ABC):
     def log_dict(self, obj: Any, artifact_file: str) -> None:
         """Store `obj` as a text artifact: YAML when `artifact_file` ends in .yaml/.yml, else JSON."""
 
+    def log_text(self, text: str, artifact_file: str) -> None:
+        """Store `text` as the artifact `artifact_file` (e.g. `hydra/config.yaml`)."""
+        with tempfile.TemporaryDirectory() as tmp:
+            path = Path(tmp) / Path(artifact_file).name
+            path.write_text(text)
+            self.log_artifact(path, _parent(artifact_file))
+
     def log_figure(self, fig: Any, artifact_file: str) -> None:
         """Store a matplotlib-like figure (anything with `savefig(path)`) as an image artifact."""
         with tempfile.TemporaryDirectory() as tmp:
@@ -93,6 +100,9 @@ class NoOpLogger(RunLogger):
         pass
 
     def log_dict(self, obj: Any, artifact_file: str) -> None:
+        pass
+
+    def log_text(self, text: str, artifact_file: str) -> None:
         pass
 
     def log_figure(self, fig: Any, artifact_file: str) -> None:

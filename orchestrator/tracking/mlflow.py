@@ -25,6 +25,11 @@ Choices worth knowing:
 - Artifacts that cannot be uploaded stay where they are and only their path is spooled; a file
   that has gone by replay time is reported and skipped. `log_dict`/`log_figure` write their files
   under `<run_dir>/tracking-artifacts/` and delete them once uploaded.
+- Artifacts have their own timeout (`artifact_timeout_s`) and, when they fail, a spool of their own, so that a
+  slow artifact store never holds up the run's metrics or its end (see `orchestrator.tracking.spool`).
+- The tracker writes no credential of its store: `hide` masks the URI's password in every log record; the run
+  name, param and tag values and the text of `log_dict`/`log_text` pass through `scrub`; an HTTP server's user
+  and password go to MLflow through its environment variables (`credentials_to_env`), and `uri` is without them.
 - One live tracker per run directory: the spool is guarded by a lock within the process only.
 """
 
@@ -55,7 +60,7 @@ from orchestrator.tracking.spool import (  # sets MLflow's client defaults befor
     Spool,
     refused,
 )
-from orchestrator.tracking.uri import embedded_uri
+from orchestrator.tracking.uri import credentials_to_env, embedded_uri, hide, redact, scrub
 
 __all__ = ["EXPERIMENT_TAGS", "MlflowLogger", "Sender", "Spool", "replay_spool", "store_artifacts"]
 
@@ -85,6 +90,8 @@ class MlflowLogger(RunLogger):
         retry_interval_s: after a failed send, spool without trying for this long; the background thread
             retries at this interval (without it, the wait doubles with each further failure, up to a minute).
         background: replay the spool from a daemon thread while it holds anything (stopped by `close`).
+        artifact_timeout_s: seconds an artifact upload may wait on the store, per request.
+        artifact_tries: uploads in a row that time out before no more are tried (the files wait in the spool).
     """
 
     def __init__(
@@ -99,20 +106,30 @@ class MlflowLogger(RunLogger):
         flush_every: int = 1,
         retry_interval_s: float = 5.0,
         background: bool = True,
+        artifact_timeout_s: int = 60,
+        artifact_tries: int = 3,
     ):
         if flush_every < 1:
             raise ValueError(f"flush_every must be at least 1, got {flush_every}")
         self.run_dir = Path(run_dir).resolve()
         self.run_dir.mkdir(parents=True, exist_ok=True)
-        self.uri = uri or embedded_uri(self.run_dir)
+        hide(uri)
+        self.uri = credentials_to_env(uri or embedded_uri(self.run_dir))
         self.flush_every = flush_every
-        self._sender = Sender(self.uri, self.run_dir / SPOOL_FILE, retry_interval_s, background=background)
+        self._sender = Sender(
+            self.uri,
+            self.run_dir / SPOOL_FILE,
+            retry_interval_s,
+            background=background,
+            artifact_timeout_s=artifact_timeout_s,
+            artifact_tries=artifact_tries,
+        )
         self._lock = threading.RLock()  # the buffer, params and state; the sender has its own locks
         self._buffer: list[list] = []  # [key, value, timestamp_ms, step]
         self._buffered_calls = 0
         self._params: dict[str, str] = {}  # params known to be logged in this run
         self._closed = False
-        tags = {str(k): truncate(str(v), MAX_TAG_VALUE_LENGTH) for k, v in (tags or {}).items()}
+        tags = {str(k): truncate(scrub(str(v)), MAX_TAG_VALUE_LENGTH) for k, v in (tags or {}).items()}
         if run_id is not None and self._resume(run_id):
             self._key = run_id
             self._sender.submit({"op": "resume", "run": run_id})
@@ -123,6 +140,7 @@ class MlflowLogger(RunLogger):
         if parent_run_id is not None:
             tags["mlflow.parentRunId"] = parent_run_id
         artifacts = (self.run_dir / "mlartifacts").as_uri() if uri is None else store_artifacts(uri)
+        run_name = None if run_name is None else scrub(run_name)  # a run name made from the overrides
         create = {"experiment": experiment, "artifact_location": artifacts, "run_name": run_name, "tags": tags}
         self._sender.submit({"op": "create", "run": self._key, "start_time": _now_ms(), **create})
 
@@ -137,7 +155,7 @@ class MlflowLogger(RunLogger):
         with self._lock:
             new = {}
             for key, value in params.items():
-                key, value = str(key), truncate(str(value))
+                key, value = str(key), truncate(scrub(str(value)))
                 old = self._params.get(key)
                 if old is None:
                     new[key] = self._params[key] = value
@@ -156,7 +174,7 @@ class MlflowLogger(RunLogger):
                 self._send_buffer()
 
     def set_tags(self, tags: Mapping[str, Any]) -> None:
-        items = [(str(k), truncate(str(v), MAX_TAG_VALUE_LENGTH)) for k, v in tags.items()]
+        items = [(str(k), truncate(scrub(str(v)), MAX_TAG_VALUE_LENGTH)) for k, v in tags.items()]
         with self._lock:
             for i in range(0, len(items), TAGS_PER_BATCH):
                 self._submit("tags", dict(items[i : i + TAGS_PER_BATCH]))
@@ -165,8 +183,11 @@ class MlflowLogger(RunLogger):
         self._submit_artifact(Path(local_path).resolve(), artifact_path, owned=False)
 
     def log_dict(self, obj: Any, artifact_file: str) -> None:
+        self.log_text(dump_text(obj, artifact_file), artifact_file)
+
+    def log_text(self, text: str, artifact_file: str) -> None:
         path = self._owned_file(artifact_file)
-        path.write_text(dump_text(obj, artifact_file))
+        path.write_text(scrub(text))
         self._submit_owned(path, artifact_file)
 
     def log_figure(self, fig: Any, artifact_file: str) -> None:
@@ -192,12 +213,13 @@ class MlflowLogger(RunLogger):
         self._sender.stop()
         if self.pending():
             log.warning(
-                "tracking: %d records left in %s; the next tracker on this run directory sends them, "
+                "tracking: %d records left in %s and %s; the next tracker on this run directory sends them, "
                 "or orchestrator.tracking.mlflow.replay_spool(%r, %r)",
                 self.pending(),
-                self._sender.spool.path,
+                self._sender.spool.path.name,
+                self._sender.artifacts.path.name,
                 str(self.run_dir),
-                self.uri,
+                redact(self.uri),
             )
 
     def pending(self) -> int:

@@ -22,18 +22,27 @@ Errors are sorted in two kinds. MLflow's refusals (invalid value, changed param,
 fail again on every replay, so they are logged and the offending entries dropped (a refused batch is
 retried entry by entry, so one bad key does not lose the other 99). Anything else (connection
 refused, timeouts, 5xx, a locked SQLite file) spools the record.
+
+Artifacts are uploads of any size, often to a store other than the tracking server's (S3, a proxy), so
+they go their own way. Each upload may take `artifact_timeout_s` per request (the 3 s of the small requests
+would cut an 87 MB checkpoint short on a slow link). An artifact that fails goes to a spool of its own,
+`<spool>-artifacts.jsonl`, and the records behind it go on: the run's metrics and its end never wait for its
+files. The background thread retries that spool at the retry interval once the main spool is empty; after
+`artifact_tries` uploads in a row time out (a store that stalls), this sender tries no more, and the files
+wait there for `replay_spool` (or the next tracker on the run directory). A refused connection is an outage,
+not a stall: those are retried like the metrics.
 """
 
 from __future__ import annotations
 
-import json
 import logging
 import os
 import shutil
 import threading
 import time
 from collections import deque
-from collections.abc import Callable, Iterable
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 # No calls home from training jobs (MLflow 3 sends client telemetry unless told not to), and no minutes of
@@ -48,6 +57,8 @@ from mlflow.exceptions import MlflowException  # noqa: E402
 from mlflow.tracking import MlflowClient  # noqa: E402
 
 from orchestrator.tracking.base import EXPERIMENT_TAGS  # noqa: E402
+from orchestrator.tracking.spoolfile import Spool  # noqa: E402
+from orchestrator.tracking.uri import credentials_to_env, redact  # noqa: E402
 
 ARTIFACT_DIR = "tracking-artifacts"  # under the run directory, beside the spool: files the tracker wrote for upload
 
@@ -59,7 +70,9 @@ METRICS_PER_BATCH = 1000
 PENDING = "pending-"  # prefix of a run key whose run is not created yet
 # MLflow error codes that a retry cannot fix: the entries are dropped rather than spooled.
 REFUSALS = {"INVALID_PARAMETER_VALUE", "RESOURCE_ALREADY_EXISTS", "RESOURCE_DOES_NOT_EXIST", "BAD_REQUEST"}
-_SPOOL_LOCKS: dict[Path, threading.RLock] = {}
+# MLflow reads its request timeouts from the environment at each request; an upload swaps them in under this lock.
+_TIMEOUT_ENV = ("MLFLOW_HTTP_REQUEST_TIMEOUT", "MLFLOW_ARTIFACT_UPLOAD_DOWNLOAD_TIMEOUT")
+_TIMEOUT_LOCK = threading.Lock()
 
 
 class Refused(Exception):
@@ -73,80 +86,14 @@ def refused(err: BaseException) -> bool:
     return isinstance(err, Refused | KeyError | TypeError)
 
 
-class Spool:
-    """An append-only JSON-lines file of records that could not be sent, oldest first.
-
-    `count` is the number of records in the file, those being replayed included; use under `lock`.
-    """
-
-    def __init__(self, path: Path):
-        self.path = path
-        self.lock = _SPOOL_LOCKS.setdefault(path.resolve(), threading.RLock())
-        self.count = sum(1 for line in path.open() if line.strip()) if path.exists() else 0
-
-    def append(self, records: Iterable[dict]) -> None:
-        lines = [json.dumps(r) + "\n" for r in records]
-        if lines:
-            with self.lock, self.path.open("a") as f:
-                f.writelines(lines)
-                f.flush()
-                os.fsync(f.fileno())
-                self.count += len(lines)
-
-    def read(self) -> tuple[list[dict], int]:
-        """The spooled records and the file's length in bytes when read (for `replace`)."""
-        with self.lock:
-            if not self.path.exists():
-                return [], 0
-            data = self.path.read_bytes()
-        return self._parse(data, 1), len(data)
-
-    def replace(
-        self, records: list[dict], read_up_to: int | None = None, resolve: Callable[[dict], dict] | None = None
-    ) -> None:
-        """Make `records` the spool (atomically), followed by whatever was appended after the first
-        `read_up_to` bytes were read (None: nothing is kept), each passed through `resolve`; no records
-        at all deletes the file."""
-        with self.lock:
-            later: list[dict] = []
-            if read_up_to is not None and self.path.exists():
-                with self.path.open("rb") as f:
-                    f.seek(read_up_to)
-                    later = self._parse(f.read(), None)
-            everything = records + later
-            if resolve is not None:
-                everything = [resolve(r) for r in everything]
-            if not everything:
-                self.path.unlink(missing_ok=True)
-            else:
-                tmp = self.path.with_suffix(".tmp")
-                tmp.write_text("".join(json.dumps(r) + "\n" for r in everything))
-                os.replace(tmp, self.path)
-            self.count = len(everything)
-
-    def _parse(self, data: bytes, first_line: int | None) -> list[dict]:
-        """Records from JSON lines; a line that does not parse (a write cut short by a crash) is skipped."""
-        records = []
-        for number, line in enumerate(data.decode(errors="replace").splitlines(), first_line or 1):
-            try:
-                record = json.loads(line)
-            except json.JSONDecodeError:
-                record = None
-            if isinstance(record, dict) and "op" in record and "run" in record:
-                records.append(record)
-            elif line.strip():
-                where = f"line {number}" if first_line else "a line appended during a replay"
-                log.warning("tracking: %s %s is not a record; skipped", self.path, where)
-        return records
-
-
 class Sender:
     """Sends records to one MLflow backend, in order, spooling them while it fails.
 
     `submit` sends a record at once when the spool is empty (or can be emptied first), and otherwise
     appends it; `drain` replays the spool. Runs created from a spooled `create` record get their id
     in `ids` (placeholder key -> run id). With `background`, a daemon thread drains the spool while it
-    is not empty (`stop` ends it).
+    is not empty (`stop` ends it). Artifacts that fail wait in the side spool `artifacts`, which only the
+    background thread and `drain(force=True)` upload (the module's docstring says how long they are tried).
     """
 
     def __init__(
@@ -156,12 +103,22 @@ class Sender:
         retry_interval_s: float,
         max_retry_interval_s: float = 60.0,
         background: bool = False,
+        artifact_timeout_s: int = 60,
+        artifact_tries: int = 3,
     ):
         self.uri = uri
         self.retry_interval_s = retry_interval_s
         self.max_retry_interval_s = max_retry_interval_s
-        self.client = MlflowClient(tracking_uri=uri)
+        self.client = MlflowClient(tracking_uri=credentials_to_env(uri))
         self.spool = Spool(spool_path)
+        spool_path = Path(spool_path)
+        self.artifacts = Spool(spool_path.with_name(f"{spool_path.stem}-artifacts{spool_path.suffix}"))
+        self.artifact_timeout_s = artifact_timeout_s
+        self.artifact_tries = artifact_tries
+        self._artifact_retry_at = 0.0  # time.monotonic() before which no artifact upload is tried
+        self._artifact_timeouts = 0  # uploads in a row that timed out; at artifact_tries, no more are tried
+        self._artifact_failing = False  # the last upload failed
+        self._uploading = False  # the background thread is uploading the side spool: records go to the spool
         self.owned_root = Path(spool_path).parent / ARTIFACT_DIR  # where the tracker writes files for upload
         self.send_lock = threading.Lock()
         self.ids: dict[str, str] = {}
@@ -171,6 +128,8 @@ class Sender:
         self._wake = threading.Event()  # something was spooled
         self._stopped = threading.Event()
         self._thread: threading.Thread | None = None
+        if self.artifacts.count:  # left by an earlier tracker: uploaded in the background, never inline
+            self._wake_thread()
 
     def submit(self, record: dict) -> None:
         """Send `record` now, or append it to the spool if the backend is (or recently was) away, or the
@@ -178,7 +137,8 @@ class Sender:
         is logged and lost."""
         try:
             if self._thread is None and self.spool.count and time.monotonic() >= self._retry_at:
-                self.drain()  # no background thread (yet): replay inline
+                with self.send_lock:  # no background thread (yet): replay inline, but no artifact upload
+                    self._drain(artifacts=False)
             if self._spooled(record):  # without waiting for a replay in progress
                 return
             with self.send_lock:  # free but for a moment: nothing is being replayed
@@ -193,8 +153,13 @@ class Sender:
             return self._drain(force)
 
     def pending(self) -> int:
-        with self.spool.lock:
-            return self.spool.count
+        """Records in the spool and artifacts in its side spool."""
+        with self.spool.lock, self.artifacts.lock:
+            return self.spool.count + self.artifacts.count
+
+    def artifacts_given_up(self) -> bool:
+        """Whether uploads timed out `artifact_tries` times in a row, so that this sender tries no more."""
+        return self._artifact_timeouts >= self.artifact_tries
 
     def note_failure(self, err: BaseException) -> None:
         """Remember that the backend failed: no sends are tried for `retry_interval_s`, or, without a
@@ -205,7 +170,7 @@ class Sender:
         wait = min(self.retry_interval_s * doubling, self.max_retry_interval_s)
         self._retry_at = time.monotonic() + wait
         if self._failures == 1:
-            log.warning("tracking: %s unreachable (%s); spooling to %s", self.uri, err, self.spool.path)
+            log.warning("tracking: %s unreachable (%s); spooling to %s", redact(self.uri), err, self.spool.path)
 
     def stop(self, timeout_s: float = 10.0) -> None:
         """End the background thread (after the request it may be making); the spool stays on disk."""
@@ -219,43 +184,131 @@ class Sender:
 
     # ---------------------------------------------------------------- under send_lock
 
-    def _drain(self, force: bool = False) -> bool:
+    def _drain(self, force: bool = False, artifacts: bool = True) -> bool:
         with self.spool.lock:
-            if not self.spool.count:
-                return True
-            if not force and time.monotonic() < self._retry_at:
+            waiting = self.spool.count
+            if waiting and not force and time.monotonic() < self._retry_at:
                 return False
-        records, size = self.spool.read()
-        rest = self._process(deque(records))
-        if rest != records or not records:  # (none: every line was damaged) and what was appended meanwhile
-            self.spool.replace(rest, read_up_to=size, resolve=self._resolved)
-            log.info("tracking: replayed %d spooled records, %d left", len(records) - len(rest), self.spool.count)
+        if waiting:
+            records, size = self.spool.read()
+            rest = self._process(deque(records))
+            if rest != records or not records:  # (none: every line was damaged) and what was appended meanwhile
+                self.spool.replace(rest, read_up_to=size, resolve=self._resolved)
+                log.info("tracking: replayed %d spooled records, %d left", len(records) - len(rest), self.spool.count)
+        if artifacts and not self.spool.count:
+            self._drain_artifacts(force)
         return self.pending() == 0
 
+    def _drain_artifacts(self, force: bool) -> None:
+        """Upload the side spool's artifacts in order, up to the first that fails (unless uploads are given up)."""
+        with self.artifacts.lock:
+            if not self.artifacts.count or self.artifacts_given_up():
+                return
+            if not force and time.monotonic() < self._artifact_retry_at:
+                return
+        records, size = self.artifacts.read()
+        done = 0
+        self._uploading = True
+        try:
+            done = self._upload_aside(records)
+        finally:
+            self._uploading = False
+        if done or not records:
+            self.artifacts.replace(records[done:], read_up_to=size)
+
+    def _upload_aside(self, records: list[dict]) -> int:
+        """Upload `records` in order up to the first failure; how many are done with (uploaded or refused)."""
+        done = 0
+        for record in records:
+            try:
+                self._send(record)
+            except Exception as err:
+                if not refused(err):
+                    self._artifact_failed(err)
+                    break
+                log.warning("tracking: artifact %s dropped, refused by MLflow: %s", record.get("path"), err)
+            else:
+                self._artifact_timeouts, self._artifact_failing = 0, False
+            _discard_owned(record, self.owned_root)
+            done += 1
+        return done
+
+    def _artifact_failed(self, err: BaseException) -> None:
+        """Count an upload that timed out, and wait the retry interval before the next one is tried."""
+        self._artifact_retry_at = time.monotonic() + self.retry_interval_s
+        if _timed_out(err):
+            self._artifact_timeouts += 1
+        if self._artifact_timeouts == self.artifact_tries:
+            log.warning(
+                "tracking: %d artifact uploads in a row timed out after %d s (%s); no more are tried, "
+                "they wait in %s for orchestrator.tracking.mlflow.replay_spool",
+                self._artifact_timeouts, self.artifact_timeout_s, err, self.artifacts.path,
+            )  # fmt: skip
+        elif not self._artifact_failing:
+            log.warning("tracking: an artifact upload failed (%s); artifacts wait in %s", err, self.artifacts.path)
+        self._artifact_failing = True
+
+    def _artifacts_held(self) -> bool:
+        """Whether a new artifact goes to the side spool untried: others wait there, or uploads are failing."""
+        return bool(self.artifacts.count) or self._artifact_retry_at > time.monotonic() or self.artifacts_given_up()
+
+    def _due(self) -> float | None:
+        """When (time.monotonic()) a replay is due, 0.0 if now; None if nothing waits (or only given-up artifacts)."""
+        now = time.monotonic()
+        if self.spool.count:
+            at = self._retry_at
+        elif self.artifacts.count and not self.artifacts_given_up():
+            at = self._artifact_retry_at
+        else:
+            return None
+        return 0.0 if at <= now else at
+
     def _spooled(self, record: dict) -> bool:
-        """Append `record` to the spool if it is not empty, or no send is to be tried yet; True if so."""
+        """Append `record` to the spool if it is not empty, no send is to be tried yet, or the background
+        thread is uploading an artifact (which may take `artifact_timeout_s`); True if so."""
         with self.spool.lock:
-            if self.spool.count or time.monotonic() < self._retry_at:
+            if self.spool.count or time.monotonic() < self._retry_at or self._uploading:
                 self._spool([record])
                 return True
         return False
 
-    def _spool(self, records: list[dict]) -> None:
+    def _spool(self, records: list[dict], spool: Spool | None = None) -> None:
         if records:
-            self.spool.append(records)
-            if self.background and not self._stopped.is_set():
-                if self._thread is None:
-                    self._thread = threading.Thread(target=self._run, name="tracking-spool", daemon=True)
-                    self._thread.start()
-                self._wake.set()
+            (spool or self.spool).append(records)
+            self._wake_thread()
+
+    def _wake_thread(self) -> None:
+        """Start the background thread (with `background`) or wake it: something was spooled."""
+        if self.background and not self._stopped.is_set():
+            if self._thread is None:
+                self._thread = threading.Thread(target=self._run, name="tracking-spool", daemon=True)
+                self._thread.start()
+            self._wake.set()
 
     def _process(self, queue: deque[dict]) -> list[dict]:
-        """Send records from the front of `queue` until it is empty or the backend fails; return the rest."""
+        """Send records from the front of `queue` until it is empty or the backend fails; return the rest.
+        Artifacts that fail, or wait for their own retry, go to the side spool."""
+        aside: list[dict] = []
+        try:
+            return self._process_into(queue, aside)
+        finally:
+            self._spool(aside, self.artifacts)
+
+    def _process_into(self, queue: deque[dict], aside: list[dict]) -> list[dict]:
         while queue:
             batch, used = _merge_metrics(queue)
             try:
+                if batch["op"] == "artifact" and self._artifacts_held():
+                    aside.append({**batch, "run": self._run_id(batch)})  # behind those already waiting
+                    queue.popleft()
+                    continue
                 self._send(batch)
             except Exception as err:
+                if batch["op"] == "artifact" and not refused(err):
+                    self._artifact_failed(err)
+                    aside.append({**batch, "run": self._run_id(batch)})
+                    queue.popleft()
+                    continue
                 if not refused(err):
                     self.note_failure(err)
                     return list(queue)
@@ -271,9 +324,11 @@ class Sender:
             for _ in range(used):
                 queue.popleft()
             _discard_owned(batch, self.owned_root)
+            if batch["op"] == "artifact":
+                self._artifact_timeouts, self._artifact_failing = 0, False
             if self._failures:
                 self._failures, self._retry_at = 0, 0.0
-                log.warning("tracking: %s answers again", self.uri)
+                log.warning("tracking: %s answers again", redact(self.uri))
         return []
 
     # ---------------------------------------------------------------- the background thread
@@ -281,11 +336,12 @@ class Sender:
     def _run(self) -> None:
         """Drain the spool at the retry interval while it holds anything; sleep until something is spooled."""
         while not self._stopped.is_set():
-            if not self.pending():
+            due = self._due()
+            if due is None:
                 self._wake.wait()
                 self._wake.clear()
                 continue
-            delay = self._retry_at - time.monotonic()
+            delay = due - time.monotonic()
             if delay > 0:
                 self._stopped.wait(delay)
                 continue
@@ -331,7 +387,8 @@ class Sender:
             if not path.exists():
                 raise Refused(f"artifact {path} no longer exists")
             upload = client.log_artifacts if path.is_dir() else client.log_artifact
-            upload(self._run_id(record), str(path), record.get("artifact_path"))
+            with artifact_timeout(self.artifact_timeout_s):
+                upload(self._run_id(record), str(path), record.get("artifact_path"))
         elif op == "end":
             client.set_terminated(self._run_id(record), status=record["status"], end_time=record["end_time"])
         else:
@@ -360,6 +417,33 @@ class Sender:
         tags, run_name = record["tags"], record["run_name"]
         run = client.create_run(experiment_id, start_time=record["start_time"], tags=tags, run_name=run_name)
         self.ids[record["run"]] = run.info.run_id
+
+
+@contextmanager
+def artifact_timeout(seconds: int) -> Iterator[None]:
+    """MLflow's request timeouts set to `seconds` for an upload (one upload at a time in the process). A small
+    request that another thread makes meanwhile gets that timeout too: a silent host costs it longer."""
+    with _TIMEOUT_LOCK:
+        saved = {key: os.environ.get(key) for key in _TIMEOUT_ENV}
+        os.environ.update(dict.fromkeys(_TIMEOUT_ENV, str(int(seconds))))
+        try:
+            yield
+        finally:
+            for key, value in saved.items():
+                if value is None:
+                    os.environ.pop(key, None)
+                else:
+                    os.environ[key] = value
+
+
+def _timed_out(err: BaseException) -> bool:
+    """Whether `err` (or an error it was raised from) is a timeout: the store took the connection and stalled."""
+    seen: BaseException | None = err
+    while seen is not None:
+        if isinstance(seen, TimeoutError) or "Timeout" in type(seen).__name__ or "timed out" in str(seen):
+            return True
+        seen = seen.__cause__ or seen.__context__
+    return False
 
 
 def _merge_metrics(queue: deque[dict]) -> tuple[dict, int]:
