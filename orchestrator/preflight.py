@@ -27,7 +27,7 @@ import os
 import urllib.error
 import urllib.request
 from pathlib import Path
-from urllib.parse import urlsplit, urlunsplit
+from urllib.parse import urlsplit
 
 import torch
 
@@ -35,7 +35,7 @@ from orchestrator import checkpoint
 from orchestrator.algos.base import method_class
 from orchestrator.runtime.base import uses_ray
 from orchestrator.schema import Config, ConfigError
-from orchestrator.tracking.uri import store_uri, tracking_uri_error
+from orchestrator.tracking.uri import redact, store_uri, tracking_uri_error
 from orchestrator.trainer import LoopState
 from orchestrator.world import load_character, load_library
 from workers.body.character import Character, CharacterError
@@ -85,7 +85,7 @@ def tracking_server(uri: str, timeout_s: float = 3.0) -> None:
     try:
         urllib.request.urlopen(urllib.request.Request(url, headers=headers), timeout=timeout_s).close()
     except urllib.error.HTTPError as e:
-        where = f"tracking.uri={_no_password(uri)}"
+        where = f"tracking.uri={redact(uri)}"
         if e.code == 401 and not headers:
             raise InputError(
                 f"{where}: the server asks for a user: set MLFLOW_TRACKING_USERNAME and MLFLOW_TRACKING_PASSWORD "
@@ -178,18 +178,11 @@ def resume_run(cfg: Config) -> str | None:
         raise InputError(f'{path}: not a run file ({{"run_id": "<MLflow run id>"}}); resume=true reads it')
     if run_id and cfg.tracking.enabled and missing_run(cfg, run_id):
         raise InputError(
-            f"{path}: run {run_id} is not in the store {_no_password(store_uri(cfg.tracking.uri, cfg.run_dir))} "
+            f"{path}: run {run_id} is not in the store {redact(store_uri(cfg.tracking.uri, cfg.run_dir))} "
             "(deleted, or another tracking.uri); resume=true would continue it. Give the store that has it, or "
             "move run.json aside to start a new run from the last checkpoint"
         )
     return run_id
-
-
-def _no_password(uri: str) -> str:
-    parts = urlsplit(uri)
-    if parts.password is None:
-        return uri
-    return urlunsplit(parts._replace(netloc=parts.netloc.replace(f":{parts.password}@", ":***@", 1)))
 
 
 def missing_run(cfg: Config, run_id: str) -> bool:

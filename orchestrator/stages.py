@@ -48,6 +48,7 @@ from orchestrator.compose import CONF_DIR, compose, validate
 from orchestrator.provenance import code_version, inputs_digest
 from orchestrator.schema import Config, ConfigError
 from orchestrator.tracking.query import find_finished
+from orchestrator.tracking.uri import redact
 from orchestrator.upstream import Upstream, existing_run, provenance, short_error
 
 # Trains a stage's config with its resolved upstream stages under its stage hash; returns its run id.
@@ -164,7 +165,8 @@ def ensure(
     how = "resuming it from its last checkpoint" if up.resume else "training it"
     named = ", ".join(repr(e) for e in dict.fromkeys(trusted))
     where = "any experiment" if "*" in trusted else f"experiment(s) {named}"
-    log(f"stage {role}: no finished {up.algo.name} run with hash {h} in {where} of {uri}; {how} in {up.run_dir}")
+    where = f"{where} of {redact(uri)}"
+    log(f"stage {role}: no finished {up.algo.name} run with hash {h} in {where}; {how} in {up.run_dir}")
     new_id = train(up, above, h)
     return Upstream(role, up.algo.name, new_id, h, uri, cache, False, lineage, provenance(role, uri, new_id))
 

@@ -24,6 +24,7 @@ from orchestrator import checkpoint
 from orchestrator.compose import find_method, validate
 from orchestrator.schema import Config, ConfigError
 from orchestrator.tracking import query
+from orchestrator.tracking.uri import redact
 from workers.demos import DemoError, DemoSet
 from workers.learners.base import Weights
 
@@ -114,7 +115,7 @@ def existing_run(role: str, run_id: str, uri: str, cache: Path) -> Upstream:
     try:
         status, tags = query.run_status_and_tags(uri, run_id)
     except Exception as e:
-        raise StageError(f"stage {role}: run {run_id} is not in {uri} ({short_error(e)})") from None
+        raise StageError(f"stage {role}: run {run_id} is not in {redact(uri)} ({short_error(e)})") from None
     if status != "FINISHED":
         raise StageError(f"stage {role}: run {run_id} is {status}, not FINISHED")
     lineage = {
@@ -133,7 +134,7 @@ def provenance(role: str, uri: str, run_id: str) -> dict[str, str]:
     try:
         return query.run_provenance(uri, run_id)
     except Exception as e:
-        raise StageError(f"stage {role}: cannot read run {run_id} in {uri} ({short_error(e)})") from None
+        raise StageError(f"stage {role}: cannot read run {run_id} in {redact(uri)} ({short_error(e)})") from None
 
 
 def expert_weights(up: Upstream) -> Weights:

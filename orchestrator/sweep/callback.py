@@ -8,7 +8,8 @@ jobs write it directly; when a launcher runs jobs in parallel (e.g.
 `hydra/launcher=joblib`), SQLite would lock under the concurrent writers, so the
 callback starts an MLflow server on 127.0.0.1 in front of that file (or of the
 `sqlite:///` file given as `tracking.uri`) for the sweep's duration and the jobs
-log through it.
+log through it, as its one user (MLflow's basic-auth app, a fresh password in the
+environment the jobs inherit: another user of the machine cannot write to it).
 A sweep that does not reach its end (a point raised, and Hydra skips
 `on_multirun_end`; Ctrl-C) closes its parent run FAILED and stops that server
 when the process exits.
@@ -24,6 +25,7 @@ from __future__ import annotations
 
 import atexit
 import json
+import os
 import socket
 from pathlib import Path
 from typing import Any
@@ -130,8 +132,10 @@ class SweepCallback(Callback):
             ensure_experiment(store, experiment)
 
             self.server = start_local_server(
-                store, sqlite_artifacts(store), log_path=self.sweep_dir / "mlflow-server.log"
+                store, sqlite_artifacts(store), log_path=self.sweep_dir / "mlflow-server.log", auth=True
             )
+            # This process and the jobs it launches (they inherit the environment) log as the server's one user.
+            os.environ.update(self.server.credentials)
             uri = self.server.uri
             print(f"sweep: parallel jobs log through the tracking server at {uri}")
         self.logger = MlflowLogger(

@@ -1,7 +1,10 @@
 """A local MLflow tracking server in a subprocess, for jobs that write in parallel.
 
 SQLite alone locks under parallel writers, so a parallel sweep points every job at one server
-that owns the database: `start_local_server(...)` returns once `/health` answers.
+that owns the database: `start_local_server(...)` returns once `/health` answers. With `auth=True`
+(the sweep's) it runs MLflow's basic-auth app with a fresh admin password, its users in a private
+temporary folder: other users of the machine cannot reach the store through it, and clients give
+`server.credentials` as environment variables (MLFLOW_TRACKING_USERNAME / MLFLOW_TRACKING_PASSWORD).
 
     with start_local_server("sqlite:///runs/mlflow.db", Path("runs/mlartifacts")) as server:
         tracker = MlflowLogger(server.uri, "ablation_alpha", run_dir=...)
@@ -10,6 +13,8 @@ that owns the database: `start_local_server(...)` returns once `/health` answers
 from __future__ import annotations
 
 import os
+import secrets
+import shutil
 import signal
 import socket
 import subprocess
@@ -40,6 +45,8 @@ class LocalServer:
         self.host = host
         self.port = port
         self.log_path = log_path
+        self.credentials: dict[str, str] = {}  # with auth: MLFLOW_TRACKING_USERNAME and _PASSWORD for clients
+        self.private: Path | None = None  # with auth: the users' database and the app's config, removed at stop
 
     @property
     def uri(self) -> str:
@@ -72,6 +79,8 @@ class LocalServer:
             os.killpg(pgid, signal.SIGKILL)
         except ProcessLookupError:
             pass
+        if self.private is not None:
+            shutil.rmtree(self.private, ignore_errors=True)
 
     def __enter__(self) -> LocalServer:
         return self
@@ -91,6 +100,7 @@ def start_local_server(
     workers: int = 1,
     timeout: float = 60.0,
     log_path: Path | None = None,
+    auth: bool = False,
 ) -> LocalServer:
     """Start `mlflow server` on `host:port` and wait until it answers `/health`.
 
@@ -103,6 +113,7 @@ def start_local_server(
         workers: server worker processes; one keeps a SQLite store to a single writer process.
         timeout: seconds to wait for `/health` before giving up.
         log_path: where the server's output goes; default a temporary file.
+        auth: run MLflow's basic-auth app; clients need `server.credentials` in their environment.
 
     Raises:
         ServerStartError: the server exited, or did not answer within `timeout`; the message
@@ -123,9 +134,20 @@ def start_local_server(
         "--port", str(port),
         "--workers", str(workers),
     ]  # fmt: skip
-    env = dict(os.environ)
+    env = {k: v for k, v in os.environ.items() if not k.startswith("MLFLOW_TRACKING_")}
     # The server's background job runner (GenAI features) is not needed here; it adds processes and start time.
     env.setdefault("MLFLOW_SERVER_ENABLE_JOB_EXECUTION", "false")
+    private, credentials = None, {}
+    if auth:
+        from orchestrator.cluster import mlflow_auth
+
+        mlflow_auth.require_auth_app()
+        private = Path(tempfile.mkdtemp(prefix="mlflow-auth-"))  # 0700
+        password = secrets.token_urlsafe(24)
+        mlflow_auth.write_config(private / "auth.ini", f"sqlite:///{private / 'users.db'}")
+        env.update(mlflow_auth.server_env(private / "auth.ini", password))
+        command[4:4] = ["--app-name", "basic-auth"]
+        credentials = {"MLFLOW_TRACKING_USERNAME": mlflow_auth.ADMIN_USER, "MLFLOW_TRACKING_PASSWORD": password}
     with open(log_path, "ab") as log_file:
         # Its own session, so that stop() can signal the server and the workers it starts as one group.
         process = subprocess.Popen(
@@ -137,6 +159,7 @@ def start_local_server(
             start_new_session=True,
         )
     server = LocalServer(process, host, port, Path(log_path))
+    server.credentials, server.private = credentials, private
     try:
         _wait_healthy(server, timeout)
     except BaseException:

@@ -82,3 +82,21 @@ def test_a_server_that_cannot_start_says_why(tmp_path):
     with pytest.raises(ServerStartError, match="exited") as info:
         start_local_server("notadb://nowhere", tmp_path / "artifacts", timeout=30)
     assert "log" in str(info.value)
+
+
+def test_the_sweeps_server_asks_for_its_password_and_removes_its_users_at_stop(tmp_path, monkeypatch):
+    """auth=True (a parallel sweep's server): a request without the password is refused (401), one with
+    `server.credentials` is served, and the users' database goes with the server."""
+    import urllib.error
+    import urllib.request
+
+    with start_local_server(f"sqlite:///{tmp_path / 'server.db'}", tmp_path / "artifacts", auth=True) as server:
+        assert server.private is not None and oct(server.private.stat().st_mode & 0o777) == "0o700"
+        with pytest.raises(urllib.error.HTTPError) as refused:
+            urllib.request.urlopen(f"{server.uri}/api/2.0/mlflow/experiments/search?max_results=1", timeout=10)
+        assert refused.value.code == 401
+        for key, value in server.credentials.items():
+            monkeypatch.setenv(key, value)
+        experiment = MlflowClient(server.uri).create_experiment("with-auth")
+        assert MlflowClient(server.uri).get_experiment(experiment).name == "with-auth"
+    assert not server.running() and not server.private.exists()
