@@ -100,15 +100,35 @@ def untracked_trainer(cfg: Config) -> tuple[Runtime, Trainer]:
         raise
 
 
+class Interrupted(KeyboardInterrupt):
+    """Ctrl-C (or SIGTERM) stopped a run: the checkpoint being written was finished or deleted, and the MLflow
+    run is marked KILLED. `iteration`: the iterations that run had done."""
+
+    def __init__(self, iteration: int):
+        super().__init__(iteration)
+        self.iteration = iteration
+
+
 def run(
     cfg: Config,
     parent_run_id: str | None = None,
     upstream: dict[str, Upstream] | None = None,
     stage_hash: str | None = None,
 ) -> dict[str, float]:
-    """Train `cfg`'s method; its upstream stages (`algo.needs`) are reused from the store or run first."""
+    """Train `cfg`'s method; its upstream stages (`algo.needs`) are reused from the store or run first.
+
+    The run directory is locked for the run (`checkpoint.lock_run_dir`): a second command given the same
+    one stops with `checkpoint.RunDirBusy` before anything is written. Interrupted, it raises `Interrupted`."""
     run_dir = Path(cfg.run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
+    with checkpoint.lock_run_dir(run_dir):
+        return _run(cfg, parent_run_id, upstream, stage_hash)
+
+
+def _run(
+    cfg: Config, parent_run_id: str | None, upstream: dict[str, Upstream] | None, stage_hash: str | None
+) -> dict[str, float]:
+    run_dir = Path(cfg.run_dir)
     torch.manual_seed(cfg.seed)
     character, _ = load_character_and_library(cfg)  # a clip that does not load fails here, before any process starts
     if upstream is None and cfg.algo.needs:
@@ -120,35 +140,57 @@ def run(
     if stage_hash is None:
         stage_hash = stages.config_hash(cfg, {r: u.stage_hash for r, u in upstream.items()})
     run_file = run_dir / checkpoint.RUN_FILE
-    resume_from = checkpoint.latest(run_dir / "checkpoints") if cfg.resume else None
     run_id = json.loads(run_file.read_text())["run_id"] if cfg.resume and run_file.exists() else None
-    if resume_from is not None:  # a checkpoint that does not fit is refused before the run is reopened
-        preflight.resume_checkpoint(cfg, character)
+    # The newest checkpoint that fits, each newer one that does not named; none fits: refused before the run
+    # is reopened. A crash's leftovers (a `.tmp`, checkpoints beyond algo.loop.checkpoint_keep) go at the
+    # first save.
+    resume_from = preflight.resume_checkpoint(cfg, character, log=_log) if cfg.resume else None
     if cfg.resume and resume_from is None:
         print(f"resume: no checkpoint in {run_dir / 'checkpoints'}; starting from scratch", file=sys.stderr)
     tags = {"stage_hash": stage_hash, **stages.lineage_tags(upstream)}
     logger = build_logger(cfg, run_id, parent_run_id, tags)
-    if run_id is None:
-        resolved: dict[str, Any] = asdict(cfg)
-        logger.log_params(flatten(resolved))
-        logger.log_dict(resolved, "config.json")
-        for path in hydra_record():
-            logger.log_artifact(str(path), "hydra")
-    run_file.write_text(json.dumps({"run_id": logger.run_id}))
-    runtime = build_runtime(cfg)
-    status = "FAILED"
+    status, runtime, trainer = "FAILED", None, None
     try:
+        if run_id is None:
+            resolved: dict[str, Any] = asdict(cfg)
+            logger.log_params(flatten(resolved))
+            logger.log_dict(resolved, "config.json")
+            for path in hydra_record():
+                logger.log_artifact(str(path), "hydra")
+        run_file.write_text(json.dumps({"run_id": logger.run_id}))
+        runtime = build_runtime(cfg)
         trainer = Trainer(cfg, runtime, logger, character, upstream)
         _log(where_to_watch(cfg, logger, runtime))
         if resume_from is not None:
-            trainer.restore(resume_from)
+            resume_from = _restore(trainer, resume_from)
             print(f"resumed from {resume_from} at iteration {trainer.state.iteration}", file=sys.stderr)
         summary = trainer.run()
         status = "FINISHED"
         print(closing(cfg, logger, trainer.state.baseline, summary, trainer.model_uri), flush=True)
         return summary
+    except KeyboardInterrupt as e:  # Ctrl-C, or SIGTERM (orchestrator.__main__); a stage's own is passed on
+        status = "KILLED"
+        if isinstance(e, Interrupted):
+            raise
+        raise Interrupted(trainer.state.iteration if trainer is not None else 0) from None
     finally:
         logger.close(status)
         # A run created late (the server was down at the start) has its id only now.
         run_file.write_text(json.dumps({"run_id": logger.run_id}))
-        runtime.shutdown()
+        if runtime is not None:
+            runtime.shutdown()
+
+
+def _restore(trainer: Trainer, first: Path) -> Path:
+    """Restore `trainer` from `first` or, if that does not fit (checked only now for a method with upstream
+    stages), from the newest older checkpoint that does; the one used. CheckpointError if none fits."""
+    older = [p for p in checkpoint.newest_first(first.parent) if p <= first]
+    for path in older:
+        try:
+            trainer.restore(path)
+            return path
+        except checkpoint.CheckpointError as e:
+            if path == older[-1]:
+                raise
+            _log(f"resume: skipping checkpoint {e}")
+    raise checkpoint.CheckpointError(first, "no such file")

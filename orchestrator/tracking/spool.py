@@ -45,6 +45,7 @@ os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")  # a bar 
 
 from mlflow.entities import Metric, Param, RunTag  # noqa: E402 - after the environment defaults
 from mlflow.exceptions import MlflowException  # noqa: E402
+from mlflow.store.artifact.artifact_repository_registry import get_artifact_repository  # noqa: E402
 from mlflow.tracking import MlflowClient  # noqa: E402
 
 from orchestrator.tracking.base import EXPERIMENT_TAGS  # noqa: E402
@@ -332,6 +333,9 @@ class Sender:
                 raise Refused(f"artifact {path} no longer exists")
             upload = client.log_artifacts if path.is_dir() else client.log_artifact
             upload(self._run_id(record), str(path), record.get("artifact_path"))
+        elif op == "delete":  # not in MlflowClient: through the run's artifact repository (a no-op when gone)
+            repo = get_artifact_repository(client.get_run(self._run_id(record)).info.artifact_uri, self.uri)
+            repo.delete_artifacts(record["delete"])
         elif op == "end":
             client.set_terminated(self._run_id(record), status=record["status"], end_time=record["end_time"])
         else:
