@@ -4,9 +4,11 @@ newest K, and the run directory's lock."""
 from __future__ import annotations
 
 import os
+import re
 import stat
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 import torch
@@ -92,3 +94,19 @@ def test_a_second_lock_on_a_run_directory_is_refused_naming_it(tmp_path):
         assert subprocess.run([sys.executable, "-c", code, str(tmp_path)], env=env).returncode == 3
     with checkpoint.lock_run_dir(tmp_path):  # released when the run ends
         pass
+
+
+def test_the_default_run_directory_is_named_to_the_microsecond():
+    """Two commands started in the same second get run directories of their own (were they to meet, the
+    second would find it locked)."""
+    from hydra import compose, initialize_config_dir
+
+    from orchestrator.compose import register
+
+    register()
+    conf = Path(__file__).resolve().parents[2] / "conf"
+    with initialize_config_dir(config_dir=str(conf), version_base="1.3"):
+        cfg = compose("config", return_hydra_config=True)
+    run_dir, sweep_dir = cfg.hydra.run.dir, cfg.hydra.sweep.dir
+    assert re.fullmatch(r"outputs/default/\d{4}-\d\d-\d\d_\d\d-\d\d-\d\d-\d{6}", run_dir), run_dir
+    assert sweep_dir == run_dir
