@@ -85,7 +85,7 @@ def main(dcfg: DictConfig) -> float | None:
         prefix = next(p for kind, p in prefixes.items() if isinstance(e, kind))
         _fail(f"{prefix}{e}", parent)
     except KeyboardInterrupt as e:  # orchestrator.build.Interrupted once training has started
-        _fail(_interrupted_line(cfg, getattr(e, "iteration", None)), parent, status="KILLED", code=130)
+        _fail(_interrupted_line(cfg, e), parent, status="KILLED", code=130)
     return summary.get("eval/time_until_fall_mean")
 
 
@@ -93,9 +93,9 @@ def _interrupt(signum: int, frame: object) -> None:
     raise KeyboardInterrupt
 
 
-def _interrupted_line(cfg, iteration: int | None) -> str:
-    """`interrupted at iteration N (...); resume with: python -m orchestrator <the same overrides>
-    run_dir=<dir> resume=true`."""
+def _interrupted_line(cfg, e: KeyboardInterrupt) -> str:
+    """`interrupted at iteration N (a resume starts from ckpt-M.pt); resume with: python -m orchestrator
+    <the same overrides> run_dir=<dir> resume=true`; for an upstream stage cut short, its checkpoint's path."""
     from orchestrator.checkpoint import latest
 
     try:
@@ -104,9 +104,12 @@ def _interrupted_line(cfg, iteration: int | None) -> str:
         overrides = []
     kept = [o for o in overrides if not o.lstrip("+~").startswith(("run_dir=", "resume="))]
     command = shlex.join(["python", "-m", "orchestrator", *kept, f"run_dir={cfg.run_dir}", "resume=true"])
-    last = latest(Path(cfg.run_dir) / "checkpoints")
-    saved = f"from {last.name}" if last is not None else "from scratch: no checkpoint yet"
-    where = f"at iteration {iteration}" if iteration is not None else "before training started"
+    run_dir = Path(getattr(e, "run_dir", cfg.run_dir))
+    last = latest(run_dir / "checkpoints")
+    saved = "from scratch: no checkpoint yet" if last is None else f"from {last.name}"
+    if last is not None and run_dir != Path(cfg.run_dir):
+        saved = f"the stage in {run_dir} from {last.name}"
+    where = f"at iteration {e.iteration}" if hasattr(e, "iteration") else "before training started"
     return f"interrupted {where} (a resume starts {saved}); resume with: {command}"
 
 

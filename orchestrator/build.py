@@ -102,11 +102,13 @@ def untracked_trainer(cfg: Config) -> tuple[Runtime, Trainer]:
 
 class Interrupted(KeyboardInterrupt):
     """Ctrl-C (or SIGTERM) stopped a run: the checkpoint being written was finished or deleted, and the MLflow
-    run is marked KILLED. `iteration`: the iterations that run had done."""
+    run is marked KILLED. `iteration`: the iterations that run had done; `run_dir`: its run directory (an
+    upstream stage's, when one was being trained)."""
 
-    def __init__(self, iteration: int):
-        super().__init__(iteration)
+    def __init__(self, iteration: int, run_dir: Path):
+        super().__init__(iteration, run_dir)
         self.iteration = iteration
+        self.run_dir = run_dir
 
 
 def run(
@@ -172,7 +174,7 @@ def _run(
         status = "KILLED"
         if isinstance(e, Interrupted):
             raise
-        raise Interrupted(trainer.state.iteration if trainer is not None else 0) from None
+        raise Interrupted(trainer.state.iteration if trainer is not None else 0, run_dir) from None
     finally:
         logger.close(status)
         # A run created late (the server was down at the start) has its id only now.

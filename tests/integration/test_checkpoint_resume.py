@@ -131,3 +131,27 @@ def test_ctrl_c_marks_the_run_killed_and_prints_the_command_that_resumes_it(tmp_
     assert f"resumed from {ckpts / m.group(2)} at iteration {resumed_at}" in err
     assert client.get_run(run_id).info.status == "FINISHED"
     assert len(list(ckpts.glob("ckpt-*.pt"))) <= 3  # algo.loop.checkpoint_keep's default
+
+
+@pytest.mark.slow
+def test_sigterm_stops_a_run_as_ctrl_c_does(tmp_path):
+    run_dir = tmp_path / "run"
+    args = ["runtime=local", "scale=smoke", "motion=walk", "eval.video=false", "tracking=off", "progress=false"]
+    args += ["algo.loop.checkpoint_every=1", "algo.loop.iterations=1000", f"hydra.run.dir={tmp_path / 'hydra'}"]
+    proc = orchestrator(*args, f"run_dir={run_dir}")
+    ckpts = run_dir / "checkpoints"
+    deadline = time.time() + 300
+    while time.time() < deadline and not (ckpts / "ckpt-0000002.pt").exists():
+        assert proc.poll() is None, proc.communicate()[1][-2000:]
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGTERM)  # a checkpoint each iteration: often in the middle of one
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, err[-3000:]
+    assert "Traceback" not in err
+    assert re.fullmatch(
+        r"interrupted at iteration \d+ \(a resume starts from ckpt-\d+\.pt\); resume with: .*",
+        err.strip().splitlines()[-1],
+    )
+    assert not list(ckpts.glob("*.tmp"))
+    assert len(list(ckpts.glob("ckpt-*.pt"))) <= 3
+    checkpoint.load(checkpoint.latest(ckpts))  # complete
