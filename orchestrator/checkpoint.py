@@ -18,6 +18,7 @@ import pickle
 import re
 import warnings
 import zipfile
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -109,14 +110,18 @@ def latest(directory: str | Path) -> Path | None:
     return paths[0] if paths else None
 
 
-def prune(directory: str | Path, keep: int) -> list[Path]:
+def prune(directory: str | Path, keep: int, forget: Callable[[Path], None] | None = None) -> list[Path]:
     """Delete all but the `keep` newest checkpoints in `directory`, and any `.tmp` left by a save that a crash
-    cut short; the checkpoints deleted. Only for the command that holds the run directory's lock."""
+    cut short; the checkpoints deleted. `forget(path)` is called before each is deleted (to delete its copy
+    in the store first: cut short between the two, the file is still here, and the next prune does both).
+    Only for the command that holds the run directory's lock."""
     directory = Path(directory)
     for tmp in directory.glob("ckpt-*.tmp"):
         tmp.unlink(missing_ok=True)
     old = newest_first(directory)[keep:]
     for path in old:
+        if forget is not None:
+            forget(path)
         path.unlink(missing_ok=True)
     return old
 

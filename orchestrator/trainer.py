@@ -219,10 +219,12 @@ class Trainer:
         )
         path = checkpoint.save(self.ckpt_dir, self.state.iteration, state)
         self.logger.log_artifact(str(path), "checkpoints")
-        # The newest `checkpoint_keep` stay, here and in the store (deleted there in order after their upload).
-        for old in checkpoint.prune(self.ckpt_dir, self.cfg.algo.loop.checkpoint_keep):
-            self.logger.delete_artifact(f"checkpoints/{old.name}")
+        # The newest `checkpoint_keep` stay, here and in the store (deleted there first, in order after the uploads).
+        checkpoint.prune(self.ckpt_dir, self.cfg.algo.loop.checkpoint_keep, self._forget)
         return path
+
+    def _forget(self, path: Path) -> None:
+        self.logger.delete_artifact(f"checkpoints/{path.name}")
 
     def restore(self, path: Path) -> None:
         """Load every component, the method and the workers from `path`; CheckpointError naming the file and

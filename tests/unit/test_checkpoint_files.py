@@ -75,6 +75,25 @@ def test_prune_keeps_the_newest_k_and_removes_stray_tmp_files(tmp_path):
     assert checkpoint.prune(tmp_path, keep=2) == []
 
 
+def test_prune_forgets_a_checkpoint_before_deleting_it_so_a_cut_short_prune_is_redone(tmp_path):
+    for i in range(1, 4):
+        checkpoint.save(tmp_path, i, state(i))
+    seen = []
+
+    def forget(path):  # the store's copy first; Ctrl-C before the file here goes
+        seen.append((path.name, path.exists()))
+        raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        checkpoint.prune(tmp_path, keep=1, forget=forget)
+    assert seen == [("ckpt-0000002.pt", True)]
+    assert len(list(tmp_path.glob("ckpt-*.pt"))) == 3  # still here: the next prune forgets it again
+    forgotten = []
+    checkpoint.prune(tmp_path, keep=1, forget=lambda p: forgotten.append(p.name))
+    assert forgotten == ["ckpt-0000002.pt", "ckpt-0000001.pt"]
+    assert [p.name for p in tmp_path.iterdir()] == ["ckpt-0000003.pt"]
+
+
 def test_checkpoint_keep_below_one_is_refused_naming_the_key():
     with pytest.raises(ConfigError, match=r"algo\.loop\.checkpoint_keep must be at least 1, got 0"):
         LoopConfig(checkpoint_keep=0)

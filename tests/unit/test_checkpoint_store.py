@@ -21,8 +21,7 @@ def test_deleted_checkpoints_leave_the_store_and_the_kept_ones_stay(tmp_path):
     for i in range(1, 5):  # as Trainer.save: upload, then prune here and there
         path = checkpoint.save(ckpts, i, {"w": i})
         logger.log_artifact(path, "checkpoints")
-        for old in checkpoint.prune(ckpts, keep=2):
-            logger.delete_artifact(f"checkpoints/{old.name}")
+        checkpoint.prune(ckpts, keep=2, forget=lambda old: logger.delete_artifact(f"checkpoints/{old.name}"))
     assert stored(logger) == ["checkpoints/ckpt-0000003.pt", "checkpoints/ckpt-0000004.pt"]
     logger.delete_artifact("checkpoints/ckpt-0000001.pt")  # gone already: nothing to do, nothing spooled
     logger.close()
