@@ -7,10 +7,14 @@ stages it needs (`orchestrator.stages`, which trains a missing one through `trai
 
 from __future__ import annotations
 
+import contextlib
 import json
+import signal
 import socket
 import subprocess
 import sys
+import threading
+from collections.abc import Iterator
 from dataclasses import asdict
 from pathlib import Path
 from typing import Any
@@ -176,11 +180,27 @@ def _run(
             raise
         raise Interrupted(trainer.state.iteration if trainer is not None else 0, run_dir) from None
     finally:
-        logger.close(status)
-        # A run created late (the server was down at the start) has its id only now.
-        run_file.write_text(json.dumps({"run_id": logger.run_id}))
-        if runtime is not None:
-            runtime.shutdown()
+        with _shielded(status == "KILLED"):
+            logger.close(status)
+            # A run created late (the server was down at the start) has its id only now.
+            run_file.write_text(json.dumps({"run_id": logger.run_id}))
+            if runtime is not None:
+                runtime.shutdown()
+
+
+@contextlib.contextmanager
+def _shielded(on: bool) -> Iterator[None]:
+    """Ctrl-C and SIGTERM ignored while a run that was interrupted closes (a second Ctrl-C, pressed while it
+    does, would leave its MLflow run RUNNING); only in the main thread, where signals are handled."""
+    if not on or threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    before = {sig: signal.signal(sig, signal.SIG_IGN) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for sig, handler in before.items():
+            signal.signal(sig, handler)
 
 
 def _restore(trainer: Trainer, first: Path) -> Path:

@@ -3,6 +3,9 @@ whose checkpoints are checked only as the trainer restores them)."""
 
 from __future__ import annotations
 
+import os
+import signal
+import time
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -64,3 +67,14 @@ def test_restore_raises_when_no_checkpoint_fits(tmp_path):
     paths = [checkpoint.save(tmp_path, i, {"w": i}) for i in (2, 4)]
     with pytest.raises(checkpoint.CheckpointError, match="ckpt-0000002.pt: world_model"):
         build._restore(Restorer({"ckpt-0000002.pt", "ckpt-0000004.pt"}), paths[1])
+
+
+def test_a_second_ctrl_c_while_an_interrupted_run_closes_is_ignored():
+    before = signal.getsignal(signal.SIGINT)
+    with build._shielded(True):
+        os.kill(os.getpid(), signal.SIGINT)  # delivered at once to this (the main) thread: ignored
+        time.sleep(0.05)
+    assert signal.getsignal(signal.SIGINT) is before
+    with pytest.raises(KeyboardInterrupt), build._shielded(False):  # a run that was not interrupted: as ever
+        os.kill(os.getpid(), signal.SIGINT)
+        time.sleep(0.05)
