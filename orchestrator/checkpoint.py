@@ -3,8 +3,8 @@
 NumPy arrays (replay contents, RNG states) are stored as tensors under a marker
 so that the safe unpickler can read them back. A file that cannot be used (truncated,
 not a weights file, written for networks of other sizes) is a `CheckpointError` naming
-it and what is wrong; it is never deleted or overwritten here, and a resume goes on to the
-one before it (`newest_first`). A save is durable once it returns (the file and its directory
+it and what is wrong; it is not deleted for that (only `prune` deletes, the oldest first), and a
+resume goes on to the one before it (`newest_first`). A save is durable once it returns (the file and its directory
 are fsynced) and leaves nothing behind if interrupted; `prune` keeps the newest few. Beside the
 checkpoints, a run directory holds `RUN_FILE`, the id of the MLflow run that a resume reopens,
 and `LOCK_FILE`, locked by the command that runs in it (`lock_run_dir`).
@@ -20,7 +20,7 @@ import warnings
 import zipfile
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, TextIO
 
 import numpy as np
 import torch
@@ -126,7 +126,7 @@ def prune(directory: str | Path, keep: int, forget: Callable[[Path], None] | Non
     return old
 
 
-def lock_run_dir(run_dir: str | Path) -> Any:
+def lock_run_dir(run_dir: str | Path) -> TextIO:
     """Lock `run_dir` for this process (an exclusive `flock` on its `LOCK_FILE`, released when the process
     ends, however it ends); the open lock file, to keep open while the run goes on. RunDirBusy naming
     the directory if another command holds it."""

@@ -111,7 +111,7 @@ def resume_checkpoint(cfg: Config, character: Character, log: Callable[[str], No
     method = method_class(cfg.algo._target_)(cfg, character, None)
     components = [] if method.needs else method.components()  # with upstream stages: built later, from them
     targets = None
-    first: checkpoint.CheckpointError | None = None
+    errors: list[checkpoint.CheckpointError] = []
     for path in paths:
         try:
             state = checkpoint.load(path)
@@ -130,13 +130,12 @@ def resume_checkpoint(cfg: Config, character: Character, log: Callable[[str], No
             checkpoint.check_restore(path, state, {"method": method, **targets})
             return path
         except checkpoint.CheckpointError as e:
-            first = first or e
+            errors.append(e)
             if log is not None:
                 log(f"resume: skipping checkpoint {e}")
-    assert first is not None
     if len(paths) == 1:
-        raise InputError(f"checkpoint {first} (resume=true; the file is left as it is)")
+        raise InputError(f"checkpoint {errors[0]} (resume=true; the file is left as it is)")
     raise InputError(
-        f"checkpoint {first} (and the {len(paths) - 1} before it do not load either; resume=true; "
+        f"checkpoint {errors[0]} (and the {len(paths) - 1} before it do not load either; resume=true; "
         "the files are left as they are)"
     )

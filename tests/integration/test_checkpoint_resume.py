@@ -8,6 +8,7 @@ import json
 import os
 import re
 import shlex
+import shutil
 import signal
 import subprocess
 import sys
@@ -17,7 +18,7 @@ from pathlib import Path
 import pytest
 from mlflow.tracking import MlflowClient
 
-from orchestrator import checkpoint
+from orchestrator import checkpoint, preflight
 from orchestrator.build import run
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -43,6 +44,16 @@ def test_a_truncated_newest_checkpoint_resumes_from_the_one_before(smoke, capsys
     newest = ckpts / "ckpt-0000004.pt"
     newest.write_bytes(newest.read_bytes()[: newest.stat().st_size // 2])  # a disk that filled up, say
     run_id = json.loads((run_dir / "run.json").read_text())["run_id"]
+
+    # Had the one before it been spoiled too (in a copy): refused, naming the newest and saying so.
+    spoiled = smoke("algo.loop.iterations=6", *common, "resume=true", name="spoiled")
+    shutil.copytree(ckpts, Path(spoiled.run_dir) / "checkpoints")
+    (Path(spoiled.run_dir) / "checkpoints" / "ckpt-0000002.pt").write_text("step,reward\n1,0.5\n")
+    with pytest.raises(preflight.InputError) as refused:
+        preflight.resume_checkpoint(spoiled, preflight.character_and_clips(spoiled))
+    message = str(refused.value)
+    assert message.startswith(f"checkpoint {spoiled.run_dir}/checkpoints/ckpt-0000004.pt: truncated or corrupt")
+    assert message.endswith("(and the 1 before it do not load either; resume=true; the files are left as they are)")
     capsys.readouterr()
 
     run(smoke("algo.loop.iterations=6", *common, "resume=true", name="r"))
