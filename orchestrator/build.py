@@ -165,7 +165,10 @@ def _run(
                 logger.log_artifact(str(path), "hydra")
         run_file.write_text(json.dumps({"run_id": logger.run_id}))
         runtime = build_runtime(cfg)
+        sigterm = signal.getsignal(signal.SIGTERM)
         trainer = Trainer(cfg, runtime, logger, character, upstream)
+        if threading.current_thread() is threading.main_thread():  # ray.init sets its own: exit at once, FAILED
+            signal.signal(signal.SIGTERM, sigterm)
         _log(where_to_watch(cfg, logger, runtime))
         if resume_from is not None:
             resume_from = _restore(trainer, resume_from)

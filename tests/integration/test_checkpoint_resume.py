@@ -145,18 +145,24 @@ def test_ctrl_c_marks_the_run_killed_and_prints_the_command_that_resumes_it(tmp_
 
 
 @pytest.mark.slow
-def test_sigterm_stops_a_run_as_ctrl_c_does(tmp_path):
+@pytest.mark.parametrize("runtime", ["local", pytest.param("ray", marks=pytest.mark.ray)])
+def test_sigterm_stops_a_run_as_ctrl_c_does(tmp_path, runtime):
+    """Also on Ray, whose `ray.init` puts in a SIGTERM handler of its own (exit at once: the run FAILED)."""
     run_dir = tmp_path / "run"
-    args = ["runtime=local", "scale=smoke", "motion=walk", "eval.video=false", "tracking=off", "progress=false"]
+    args = [f"runtime={runtime}", "scale=smoke", "motion=walk", "eval.video=false", "tracking=off", "progress=false"]
     args += ["algo.loop.checkpoint_every=1", "algo.loop.iterations=1000", f"hydra.run.dir={tmp_path / 'hydra'}"]
     proc = orchestrator(*args, f"run_dir={run_dir}")
     ckpts = run_dir / "checkpoints"
-    deadline = time.time() + 300
-    while time.time() < deadline and not (ckpts / "ckpt-0000002.pt").exists():
-        assert proc.poll() is None, proc.communicate()[1][-2000:]
-        time.sleep(0.05)
-    proc.send_signal(signal.SIGTERM)  # a checkpoint each iteration: often in the middle of one
-    _, err = proc.communicate(timeout=120)
+    try:
+        deadline = time.time() + 300
+        while time.time() < deadline and not (ckpts / "ckpt-0000002.pt").exists():
+            assert proc.poll() is None, proc.communicate()[1][-2000:]
+            time.sleep(0.05)
+        proc.send_signal(signal.SIGTERM)  # a checkpoint each iteration: often in the middle of one
+        _, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
     assert proc.returncode == 130, err[-3000:]
     assert "Traceback" not in err
     assert re.fullmatch(
