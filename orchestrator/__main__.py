@@ -3,12 +3,17 @@
 Bad input ends the run with exit status 2 and one line on stderr naming the key, file or address:
 `config error: ...` for a config value (at composition), `error: ...` for input that the config names
 but that cannot be used (a malformed clip or character file, a checkpoint that does not fit, a Ray
-address where nothing answers: `orchestrator.preflight`), `stage error: ...` for an upstream stage.
+address where nothing answers: `orchestrator.preflight`; a run directory another command is running in),
+`stage error: ...` for an upstream stage. Ctrl-C (or SIGTERM) ends a run with exit status 130, its MLflow
+run KILLED, and one line: where it stopped and the command that resumes it.
 """
 
 from __future__ import annotations
 
+import shlex
+import signal
 import sys
+from pathlib import Path
 from typing import NoReturn
 
 import hydra
@@ -55,7 +60,7 @@ def main(dcfg: DictConfig) -> float | None:
         # A point of a sweep: a child of the sweep's parent run, in the sweep's store.
         cfg.tracking.uri = cfg.tracking.uri or parent["uri"]
         cfg.tracking.experiment = parent["experiment"]
-    from orchestrator.checkpoint import CheckpointError
+    from orchestrator.checkpoint import CheckpointError, RunDirBusy
     from orchestrator.preflight import InputError, check
     from orchestrator.upstream import StageError
     from workers.body.character import CharacterError
@@ -70,28 +75,56 @@ def main(dcfg: DictConfig) -> float | None:
         ClipError: "error: clip ",
         CharacterError: "error: character ",
         CheckpointError: "error: checkpoint ",
+        RunDirBusy: "error: ",
     }
+    signal.signal(signal.SIGTERM, _interrupt)  # `kill`, a scheduler's stop: as Ctrl-C
     try:
         check(cfg)  # before anything is started or written
         summary = run(cfg, parent_run_id=parent["parent_run_id"] if parent else None)
     except tuple(prefixes) as e:
         prefix = next(p for kind, p in prefixes.items() if isinstance(e, kind))
         _fail(f"{prefix}{e}", parent)
+    except KeyboardInterrupt as e:  # orchestrator.build.Interrupted once training has started
+        _fail(_interrupted_line(cfg, e), parent, status="KILLED", code=130)
     return summary.get("eval/time_until_fall_mean")
 
 
-def _fail(line: str, parent: dict | None = None) -> NoReturn:
-    """One line and exit status 2; a sweep point also marks the sweep's parent run FAILED (the multirun
-    ends here, so the sweep's own end, which would close it, never comes)."""
+def _interrupt(signum: int, frame: object) -> None:
+    raise KeyboardInterrupt
+
+
+def _interrupted_line(cfg, e: KeyboardInterrupt) -> str:
+    """`interrupted at iteration N (a resume starts from ckpt-M.pt); resume with: python -m orchestrator
+    <the same overrides> run_dir=<dir> resume=true`; for an upstream stage cut short, its checkpoint's path."""
+    from orchestrator.checkpoint import latest
+
+    try:
+        overrides = list(HydraConfig.get().overrides.task)
+    except ValueError:
+        overrides = []
+    kept = [o for o in overrides if not o.lstrip("+~").startswith(("run_dir=", "resume="))]
+    command = shlex.join(["python", "-m", "orchestrator", *kept, f"run_dir={cfg.run_dir}", "resume=true"])
+    run_dir = Path(getattr(e, "run_dir", cfg.run_dir))
+    last = latest(run_dir / "checkpoints")
+    saved = "from scratch: no checkpoint yet" if last is None else f"from {last.name}"
+    if last is not None and run_dir != Path(cfg.run_dir):
+        saved = f"the stage in {run_dir} from {last.name}"
+    where = f"at iteration {e.iteration}" if hasattr(e, "iteration") else "before training started"
+    return f"interrupted {where} (a resume starts {saved}); resume with: {command}"
+
+
+def _fail(line: str, parent: dict | None = None, status: str = "FAILED", code: int = 2) -> NoReturn:
+    """One line and exit status `code`; a sweep point also marks the sweep's parent run `status` (the
+    multirun ends here, so the sweep's own end, which would close it, never comes)."""
     print(line, file=sys.stderr)
     if parent is not None:
         try:
             from orchestrator.tracking.query import set_terminated
 
-            set_terminated(parent["uri"], parent["parent_run_id"], "FAILED")
+            set_terminated(parent["uri"], parent["parent_run_id"], status)
         except Exception:  # noqa: BLE001 - the store is away: the parent stays RUNNING, the line above says why
             pass
-    sys.exit(2)
+    sys.exit(code)
 
 
 if __name__ == "__main__":

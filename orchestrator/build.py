@@ -7,9 +7,13 @@ stages it needs (`orchestrator.stages`, which trains a missing one through `trai
 
 from __future__ import annotations
 
+import contextlib
 import json
+import signal
 import socket
 import sys
+import threading
+from collections.abc import Iterator
 from dataclasses import asdict
 from pathlib import Path
 from typing import Any
@@ -94,15 +98,37 @@ def untracked_trainer(cfg: Config) -> tuple[Runtime, Trainer]:
         raise
 
 
+class Interrupted(KeyboardInterrupt):
+    """Ctrl-C (or SIGTERM) stopped a run: the checkpoint being written was finished or deleted, and the MLflow
+    run is marked KILLED. `iteration`: the iterations that run had done; `run_dir`: its run directory (an
+    upstream stage's, when one was being trained)."""
+
+    def __init__(self, iteration: int, run_dir: Path):
+        super().__init__(iteration, run_dir)
+        self.iteration = iteration
+        self.run_dir = run_dir
+
+
 def run(
     cfg: Config,
     parent_run_id: str | None = None,
     upstream: dict[str, Upstream] | None = None,
     stage_hash: str | None = None,
 ) -> dict[str, float]:
-    """Train `cfg`'s method; its upstream stages (`algo.needs`) are reused from the store or run first."""
+    """Train `cfg`'s method; its upstream stages (`algo.needs`) are reused from the store or run first.
+
+    The run directory is locked for the run (`checkpoint.lock_run_dir`): a second command given the same
+    one stops with `checkpoint.RunDirBusy` before anything is written. Interrupted, it raises `Interrupted`."""
     run_dir = Path(cfg.run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
+    with checkpoint.lock_run_dir(run_dir):
+        return _run(cfg, parent_run_id, upstream, stage_hash)
+
+
+def _run(
+    cfg: Config, parent_run_id: str | None, upstream: dict[str, Upstream] | None, stage_hash: str | None
+) -> dict[str, float]:
+    run_dir = Path(cfg.run_dir)
     torch.manual_seed(cfg.seed)
     character, _ = load_character_and_library(cfg)  # a clip that does not load fails here, before any process starts
     if upstream is None and cfg.algo.needs:
@@ -114,40 +140,81 @@ def run(
     if stage_hash is None:
         stage_hash = stages.config_hash(cfg, {r: u.stage_hash for r, u in upstream.items()})
     run_file = run_dir / checkpoint.RUN_FILE
-    resume_from = checkpoint.latest(run_dir / "checkpoints") if cfg.resume else None
     run_id = json.loads(run_file.read_text())["run_id"] if cfg.resume and run_file.exists() else None
     if run_id and cfg.tracking.enabled and preflight.missing_run(cfg, run_id):
         # A stage cut short whose run the store lost (a command's own run is refused by `preflight.check`):
         # made again whole, params and config, and continued from its checkpoint.
         _log(f"resume: run {run_id} is not in the store; a new run continues it from its last checkpoint")
         run_id = None
-    if resume_from is not None:  # a checkpoint that does not fit is refused before the run is reopened
-        preflight.resume_checkpoint(cfg, character)
+    # The newest checkpoint that fits, each newer one that does not named; none fits: refused before the run
+    # is reopened. A crash's leftovers (a `.tmp`, checkpoints beyond algo.loop.checkpoint_keep) go at the
+    # first save.
+    resume_from = preflight.resume_checkpoint(cfg, character, log=_log) if cfg.resume else None
     if cfg.resume and resume_from is None:
         print(f"resume: no checkpoint in {run_dir / 'checkpoints'}; starting from scratch", file=sys.stderr)
     tags = {"stage_hash": stage_hash, **stages.lineage_tags(upstream)}
     logger = build_logger(cfg, run_id, parent_run_id, tags)
-    if run_id is None:
-        resolved: dict[str, Any] = scrub_tree(asdict(cfg))  # tracking.uri's password masked
-        logger.log_params(flatten(resolved))
-        logger.log_dict(resolved, "config.json")
-        for path in hydra_record():  # as typed, the overrides may hold the password: a scrubbed copy
-            logger.log_text(scrub(path.read_text()), f"hydra/{path.name}")
-    run_file.write_text(json.dumps({"run_id": logger.run_id}))
-    runtime = build_runtime(cfg)
-    status = "FAILED"
+    status, runtime, trainer = "FAILED", None, None
     try:
+        if run_id is None:
+            resolved: dict[str, Any] = scrub_tree(asdict(cfg))  # tracking.uri's password masked
+            logger.log_params(flatten(resolved))
+            logger.log_dict(resolved, "config.json")
+            for path in hydra_record():  # as typed, the overrides may hold the password: a scrubbed copy
+                logger.log_text(scrub(path.read_text()), f"hydra/{path.name}")
+        run_file.write_text(json.dumps({"run_id": logger.run_id}))
+        runtime = build_runtime(cfg)
+        sigterm = signal.getsignal(signal.SIGTERM)
         trainer = Trainer(cfg, runtime, logger, character, upstream)
+        if threading.current_thread() is threading.main_thread():  # ray.init sets its own: exit at once, FAILED
+            signal.signal(signal.SIGTERM, sigterm)
         _log(where_to_watch(cfg, logger, runtime))
         if resume_from is not None:
-            trainer.restore(resume_from)
+            resume_from = _restore(trainer, resume_from)
             print(f"resumed from {resume_from} at iteration {trainer.state.iteration}", file=sys.stderr)
         summary = trainer.run()
         status = "FINISHED"
         print(closing(cfg, logger, trainer.state.baseline, summary, trainer.model_uri), flush=True)
         return summary
+    except KeyboardInterrupt as e:  # Ctrl-C, or SIGTERM (orchestrator.__main__); a stage's own is passed on
+        status = "KILLED"
+        if isinstance(e, Interrupted):
+            raise
+        raise Interrupted(trainer.state.iteration if trainer is not None else 0, run_dir) from None
     finally:
-        logger.close(status)
-        # A run created late (the server was down at the start) has its id only now.
-        run_file.write_text(json.dumps({"run_id": logger.run_id}))
-        runtime.shutdown()
+        with _shielded(status == "KILLED"):
+            logger.close(status)
+            # A run created late (the server was down at the start) has its id only now.
+            run_file.write_text(json.dumps({"run_id": logger.run_id}))
+            if runtime is not None:
+                runtime.shutdown()
+
+
+@contextlib.contextmanager
+def _shielded(on: bool) -> Iterator[None]:
+    """Ctrl-C and SIGTERM ignored while a run that was interrupted closes (a second Ctrl-C, pressed while it
+    does, would leave its MLflow run RUNNING); only in the main thread, where signals are handled."""
+    if not on or threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    before = {sig: signal.signal(sig, signal.SIG_IGN) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for sig, handler in before.items():
+            signal.signal(sig, handler)
+
+
+def _restore(trainer: Trainer, first: Path) -> Path:
+    """Restore `trainer` from `first` or, if that does not fit (checked only now for a method with upstream
+    stages), from the newest older checkpoint that does; the one used. CheckpointError if none fits."""
+    older = [p for p in checkpoint.newest_first(first.parent) if p <= first]
+    for path in older:
+        try:
+            trainer.restore(path)
+            return path
+        except checkpoint.CheckpointError as e:
+            if path == older[-1]:
+                raise
+            _log(f"resume: skipping checkpoint {e}")
+    raise checkpoint.CheckpointError(first, "no such file")

@@ -3,24 +3,30 @@
 NumPy arrays (replay contents, RNG states) are stored as tensors under a marker
 so that the safe unpickler can read them back. A file that cannot be used (truncated,
 not a weights file, written for networks of other sizes) is a `CheckpointError` naming
-it and what is wrong; it is never deleted or overwritten here. Beside the checkpoints, a run
-directory holds `RUN_FILE`, the id of the MLflow run that a resume reopens.
+it and what is wrong; it is not deleted for that (only `prune` deletes, the oldest first), and a
+resume goes on to the one before it (`newest_first`). A save is durable once it returns (the file and its directory
+are fsynced) and leaves nothing behind if interrupted; `prune` keeps the newest few. Beside the
+checkpoints, a run directory holds `RUN_FILE`, the id of the MLflow run that a resume reopens,
+and `LOCK_FILE`, locked by the command that runs in it (`lock_run_dir`).
 """
 
 from __future__ import annotations
 
+import fcntl
 import os
 import pickle
 import re
 import warnings
 import zipfile
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, TextIO
 
 import numpy as np
 import torch
 
 RUN_FILE = "run.json"  # in the run directory: {"run_id": <the MLflow run a resume continues>}
+LOCK_FILE = "run.lock"  # in the run directory: locked (flock) while a command runs in it
 
 _NUMPY = "__numpy__"
 # What every checkpoint the trainer writes holds besides its components' states (orchestrator.trainer).
@@ -34,6 +40,10 @@ class CheckpointError(ValueError):
         self.path = str(path)
         self.message = message
         super().__init__(f"{self.path}: {message}")
+
+
+class RunDirBusy(RuntimeError):
+    """Another command holds the run directory's lock; the message names the directory."""
 
 
 def _encode(x: Any) -> Any:
@@ -61,19 +71,80 @@ def _decode(x: Any) -> Any:
 
 
 def save(directory: str | Path, iteration: int, state: dict[str, Any]) -> Path:
-    """Write `ckpt-<iteration>.pt` atomically (a crash mid-write leaves the previous one intact)."""
+    """Write `ckpt-<iteration>.pt` atomically and durably: written to `<name>.tmp`, fsynced, renamed over
+    `ckpt-<iteration>.pt` and the directory fsynced, so a crash leaves the previous checkpoints intact and a
+    save that returned survives a power cut. Interrupted (Ctrl-C) before the rename, it deletes the `.tmp`."""
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
     path = directory / f"ckpt-{iteration:07d}.pt"
     tmp = path.with_suffix(".tmp")
-    torch.save(_encode(state), tmp)
-    os.replace(tmp, path)
+    try:
+        with open(tmp, "wb") as f:
+            torch.save(_encode(state), f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    _fsync_dir(directory)
     return path
 
 
+def _fsync_dir(directory: Path) -> None:
+    """Make a rename in `directory` durable (POSIX: the entry lives in the directory, not in the file)."""
+    fd = os.open(directory, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def newest_first(directory: str | Path) -> list[Path]:
+    """The checkpoints in `directory`, newest (highest iteration) first."""
+    return sorted(Path(directory).glob("ckpt-*.pt"), reverse=True)
+
+
 def latest(directory: str | Path) -> Path | None:
-    paths = sorted(Path(directory).glob("ckpt-*.pt"))
-    return paths[-1] if paths else None
+    paths = newest_first(directory)
+    return paths[0] if paths else None
+
+
+def prune(directory: str | Path, keep: int, forget: Callable[[Path], None] | None = None) -> list[Path]:
+    """Delete all but the `keep` newest checkpoints in `directory`, and any `.tmp` left by a save that a crash
+    cut short; the checkpoints deleted. `forget(path)` is called before each is deleted (to delete its copy
+    in the store first: cut short between the two, the file is still here, and the next prune does both).
+    Only for the command that holds the run directory's lock."""
+    directory = Path(directory)
+    for tmp in directory.glob("ckpt-*.tmp"):
+        tmp.unlink(missing_ok=True)
+    old = newest_first(directory)[keep:]
+    for path in old:
+        if forget is not None:
+            forget(path)
+        path.unlink(missing_ok=True)
+    return old
+
+
+def lock_run_dir(run_dir: str | Path) -> TextIO:
+    """Lock `run_dir` for this process (an exclusive `flock` on its `LOCK_FILE`, released when the process
+    ends, however it ends); the open lock file, to keep open while the run goes on. RunDirBusy naming
+    the directory if another command holds it."""
+    path = Path(run_dir) / LOCK_FILE
+    f = open(path, "a+")  # noqa: SIM115 - held open for the whole run
+    try:
+        fcntl.flock(f.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        f.close()
+        raise RunDirBusy(
+            f"run_dir={run_dir}: another command is running in this directory (it holds {LOCK_FILE}); "
+            "wait for it to end, or give another run_dir"
+        ) from None
+    f.seek(0)
+    f.truncate()
+    f.write(f"{os.getpid()}\n")
+    f.flush()
+    return f
 
 
 def load(path: str | Path) -> dict[str, Any]:

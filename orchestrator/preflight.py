@@ -13,10 +13,11 @@ anything is written to the run directory, so that bad input leaves everything al
   local runtime, or a Ray started for the run) or, at a cluster's `runtime.address`, one the cluster has;
 - every stage spec of the chain of upstream stages composes (`stages.plan`), and `motion.joint_map`
   names bodies of the character;
-- with `resume=true`, the run in run.json is still in the store, and the last checkpoint in the run
-  directory is complete, a weights file, written by this method, and fits this config's networks: its
-  states are loaded into the method's components built here (for methods without upstream stages;
-  those that have them are checked when the trainer restores).
+- with `resume=true`, the run in run.json is still in the store, and a checkpoint in the run directory
+  is complete, a weights file, written by this method, and fits this config's networks: its states are
+  loaded into the method's components built here (for methods without upstream stages; those that have
+  them are checked when the trainer restores). The newest that does is the one a resume starts from; an
+  error only when none does.
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ import json
 import os
 import urllib.error
 import urllib.request
+from collections.abc import Callable
 from pathlib import Path
 from urllib.parse import urlsplit
 
@@ -192,30 +194,41 @@ def missing_run(cfg: Config, run_id: str) -> bool:
     return run_exists(store_uri(cfg.tracking.uri, cfg.run_dir), run_id) is False
 
 
-def resume_checkpoint(cfg: Config, character: Character) -> Path | None:
-    """The checkpoint a resume would start from, loaded into this config's components; InputError naming
-    the file and what is wrong (for a size mismatch, the tensor and both shapes). The file is only read."""
-    path = checkpoint.latest(Path(cfg.run_dir) / "checkpoints")
-    if path is None:
+def resume_checkpoint(cfg: Config, character: Character, log: Callable[[str], None] | None = None) -> Path | None:
+    """The checkpoint a resume starts from: the newest in run_dir/checkpoints that loads into this config's
+    components, each newer one that does not said in one line to `log`. InputError naming the file and what
+    is wrong (for a size mismatch, the tensor and both shapes) when none does. The files are only read."""
+    paths = checkpoint.newest_first(Path(cfg.run_dir) / "checkpoints")
+    if not paths:
         return None
-    try:
-        state = checkpoint.load(path)
-        method = method_class(cfg.algo._target_)(cfg, character, None)
-        if method.needs:  # its components are built from upstream stages, resolved later
-            checkpoint.check_layout(path, state, [])
-            return path
-        components = method.components()
-        checkpoint.check_layout(path, state, [c.key for c in components])
+    method = method_class(cfg.algo._target_)(cfg, character, None)
+    components = [] if method.needs else method.components()  # with upstream stages: built later, from them
+    targets = None
+    errors: list[checkpoint.CheckpointError] = []
+    for path in paths:
         try:
-            LoopState(**state["loop"])
-        except TypeError as e:
-            raise checkpoint.CheckpointError(path, f"loop: {e}") from None
-        # Built as the trainer builds them, without touching this process's torch threads or RNG.
-        threads = torch.get_num_threads()
-        with torch.random.fork_rng(devices=[]):
-            targets = {c.key: c.cls(*c.args, **c.kwargs) for c in components}
-        torch.set_num_threads(threads)
-        checkpoint.check_restore(path, state, {"method": method, **targets})
-    except checkpoint.CheckpointError as e:
-        raise InputError(f"checkpoint {e} (resume=true; the file is left as it is)") from None
-    return path
+            state = checkpoint.load(path)
+            checkpoint.check_layout(path, state, [c.key for c in components])
+            if method.needs:  # its components fit or not once the trainer restores them
+                return path
+            try:
+                LoopState(**state["loop"])
+            except TypeError as e:
+                raise checkpoint.CheckpointError(path, f"loop: {e}") from None
+            if targets is None:  # built as the trainer builds them, without touching torch's threads or RNG
+                threads = torch.get_num_threads()
+                with torch.random.fork_rng(devices=[]):
+                    targets = {c.key: c.cls(*c.args, **c.kwargs) for c in components}
+                torch.set_num_threads(threads)
+            checkpoint.check_restore(path, state, {"method": method, **targets})
+            return path
+        except checkpoint.CheckpointError as e:
+            errors.append(e)
+            if log is not None:
+                log(f"resume: skipping checkpoint {e}")
+    if len(paths) == 1:
+        raise InputError(f"checkpoint {errors[0]} (resume=true; the file is left as it is)")
+    raise InputError(
+        f"checkpoint {errors[0]} (and the {len(paths) - 1} before it do not load either; resume=true; "
+        "the files are left as they are)"
+    )

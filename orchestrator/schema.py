@@ -115,6 +115,9 @@ class LoopConfig:
     staleness: int = 1
     # Iterations between checkpoints (and at the end); 0: only at the end.
     checkpoint_every: int = 50
+    # Checkpoints kept, the newest, in run_dir/checkpoints and in the MLflow run's artifacts (older ones are
+    # deleted after each save; a resume falls back to an older one when the newest does not load). At least 1.
+    checkpoint_keep: int = 3
     # Iterations between evaluations (and at the end); 0: only at the end.
     eval_every: int = 0
     # A budget in wall time as well: the run ends (evaluated and checkpointed as at its last
@@ -134,7 +137,7 @@ class LoopConfig:
     def __post_init__(self) -> None:
         if self.max_episode_steps < 0:
             raise ConfigError(f"algo.loop.max_episode_steps must be non-negative, got {self.max_episode_steps}")
-        for key in ("iterations", "collect_steps", "replay_capacity"):
+        for key in ("iterations", "collect_steps", "replay_capacity", "checkpoint_keep"):
             if getattr(self, key) < 1:
                 raise ConfigError(f"algo.loop.{key} must be at least 1, got {getattr(self, key)}")
         if self.replay_ratio <= 0:

@@ -219,19 +219,28 @@ class Trainer:
         )
         path = checkpoint.save(self.ckpt_dir, self.state.iteration, state)
         self.logger.log_artifact(str(path), "checkpoints")
+        # The newest `checkpoint_keep` stay, here and in the store (deleted there first, in order after the uploads).
+        checkpoint.prune(self.ckpt_dir, self.cfg.algo.loop.checkpoint_keep, self._forget)
         return path
 
+    def _forget(self, path: Path) -> None:
+        self.logger.delete_artifact(f"checkpoints/{path.name}")
+
     def restore(self, path: Path) -> None:
+        """Load every component, the method and the workers from `path`; CheckpointError naming the file and
+        what does not fit (a resume then tries the checkpoint before it: each load replaces every state)."""
         state = checkpoint.load(path)
-        missing = [k for k in self.handles if k not in state]
-        if missing:
-            raise ValueError(f"{path}: checkpoint has no state for {missing}; was it written by another method?")
+        checkpoint.check_layout(path, state, list(self.handles))
         rt = self.runtime
-        self.state = LoopState(**state["loop"])
-        self.method.load_state_dict(state["method"])
-        rt.get([rt.call(h, "load_state_dict", state[key]) for key, h in self.handles.items()])
-        for w, ws in zip(self.workers, state["workers"], strict=True):
-            rt.get(rt.call(w, "load_state_dict", ws))
+        try:
+            loop = LoopState(**state["loop"])
+            self.method.load_state_dict(state["method"])
+            rt.get([rt.call(h, "load_state_dict", state[key]) for key, h in self.handles.items()])
+            for w, ws in zip(self.workers, state["workers"], strict=True):
+                rt.get(rt.call(w, "load_state_dict", ws))
+        except Exception as e:
+            raise checkpoint.CheckpointError(path, checkpoint.load_error(e)) from None
+        self.state = loop
 
     # The run -----------------------------------------------------------------------
     def run(self) -> dict[str, float]:
@@ -258,24 +267,28 @@ class Trainer:
 
     def _iterate(self) -> dict[str, float]:
         cfg, loop = self.cfg, self.cfg.algo.loop
-        bar = tqdm(total=loop.iterations, initial=self.state.iteration, disable=not cfg.progress, desc=cfg.algo.name)
         last: dict[str, float] = {}
         deadline = time.monotonic() + loop.max_minutes * 60 if loop.max_minutes > 0 else float("inf")
-        while self.state.iteration < loop.iterations:
-            if time.monotonic() >= deadline:
-                log.warning("algo.loop.max_minutes=%g reached at iteration %d", loop.max_minutes, self.state.iteration)
-                break
-            metrics = self.step()
-            i = self.state.iteration
-            if loop.eval_every and i % loop.eval_every == 0 and i < loop.iterations:
-                metrics.update(self.method.evaluate(self, final=False))
-            self.logger.log_metrics(metrics, step=self.state.samples)
-            if loop.checkpoint_every and i % loop.checkpoint_every == 0 and i < loop.iterations:
-                self.save()
-            bar.update(1)
-            bar.set_postfix(samples=self.state.samples, **self.method.progress(metrics))
-            last = metrics
-        bar.close()
+        # Closed however the loop ends, so that an interrupt's message starts on a line of its own.
+        with tqdm(
+            total=loop.iterations, initial=self.state.iteration, disable=not cfg.progress, desc=cfg.algo.name
+        ) as bar:
+            while self.state.iteration < loop.iterations:
+                if time.monotonic() >= deadline:
+                    log.warning(
+                        "algo.loop.max_minutes=%g reached at iteration %d", loop.max_minutes, self.state.iteration
+                    )
+                    break
+                metrics = self.step()
+                i = self.state.iteration
+                if loop.eval_every and i % loop.eval_every == 0 and i < loop.iterations:
+                    metrics.update(self.method.evaluate(self, final=False))
+                self.logger.log_metrics(metrics, step=self.state.samples)
+                if loop.checkpoint_every and i % loop.checkpoint_every == 0 and i < loop.iterations:
+                    self.save()
+                bar.update(1)
+                bar.set_postfix(samples=self.state.samples, **self.method.progress(metrics))
+                last = metrics
         return last
 
     def export_model(self) -> None:

@@ -66,6 +66,9 @@ class RunLogger(abc.ABC):
             fig.savefig(path)
             self.log_artifact(path, _parent(artifact_file))
 
+    def delete_artifact(self, artifact_path: str) -> None:  # noqa: B027 - optional hook
+        """Delete a file logged earlier (a checkpoint older than those kept); a tracker may keep it."""
+
     def flush(self) -> None:  # noqa: B027 - optional hook, a no-op unless the tracker buffers
         """Send whatever is buffered now."""
 

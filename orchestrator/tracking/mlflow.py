@@ -182,6 +182,10 @@ class MlflowLogger(RunLogger):
     def log_artifact(self, local_path: str | Path, artifact_path: str | None = None) -> None:
         self._submit_artifact(Path(local_path).resolve(), artifact_path, owned=False)
 
+    def delete_artifact(self, artifact_path: str) -> None:
+        """Delete `artifact_path` from the run's artifacts, after the records submitted before (spooled alike)."""
+        self._submit("delete", artifact_path)
+
     def log_dict(self, obj: Any, artifact_file: str) -> None:
         self.log_text(dump_text(obj, artifact_file), artifact_file)
 

@@ -54,6 +54,7 @@ os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")  # a bar 
 
 from mlflow.entities import Metric, Param, RunTag  # noqa: E402 - after the environment defaults
 from mlflow.exceptions import MlflowException  # noqa: E402
+from mlflow.store.artifact.artifact_repository_registry import get_artifact_repository  # noqa: E402
 from mlflow.tracking import MlflowClient  # noqa: E402
 
 from orchestrator.tracking.base import EXPERIMENT_TAGS  # noqa: E402
@@ -84,6 +85,10 @@ def refused(err: BaseException) -> bool:
     if isinstance(err, MlflowException):
         return err.error_code in REFUSALS
     return isinstance(err, Refused | KeyError | TypeError)
+
+
+# The records that wait in the side spool while uploads are held: uploads, and deletions (kept behind them).
+ARTIFACT_OPS = ("artifact", "delete")
 
 
 class Sender:
@@ -298,13 +303,14 @@ class Sender:
         while queue:
             batch, used = _merge_metrics(queue)
             try:
-                if batch["op"] == "artifact" and self._artifacts_held():
+                # A checkpoint's deletion waits behind the uploads waiting aside, one of which may be that file.
+                if batch["op"] in ARTIFACT_OPS and self._artifacts_held():
                     aside.append({**batch, "run": self._run_id(batch)})  # behind those already waiting
                     queue.popleft()
                     continue
                 self._send(batch)
             except Exception as err:
-                if batch["op"] == "artifact" and not refused(err):
+                if batch["op"] in ARTIFACT_OPS and not refused(err):
                     self._artifact_failed(err)
                     aside.append({**batch, "run": self._run_id(batch)})
                     queue.popleft()
@@ -389,6 +395,9 @@ class Sender:
             upload = client.log_artifacts if path.is_dir() else client.log_artifact
             with artifact_timeout(self.artifact_timeout_s):
                 upload(self._run_id(record), str(path), record.get("artifact_path"))
+        elif op == "delete":  # not in MlflowClient: through the run's artifact repository (a no-op when gone)
+            repo = get_artifact_repository(client.get_run(self._run_id(record)).info.artifact_uri, self.uri)
+            repo.delete_artifacts(record["delete"])
         elif op == "end":
             client.set_terminated(self._run_id(record), status=record["status"], end_time=record["end_time"])
         else:
