@@ -81,6 +81,15 @@ def hydra_record() -> list[Path]:
     return [where / name for name in ("config.yaml", "overrides.yaml", "hydra.yaml") if (where / name).exists()]
 
 
+def scrub_hydra_record() -> None:
+    """Hydra's record on disk with the passwords of the URIs in it masked (the overrides as typed may hold
+    `tracking.uri=postgresql://user:pw@...`): the password stays only where the user keeps it."""
+    for path in hydra_record():
+        text = path.read_text()
+        if (clean := scrub(text)) != text:
+            path.write_text(clean)
+
+
 def train_stage(cfg: Config, upstream: dict[str, Upstream], stage_hash: str) -> str:
     """Train an upstream stage that the store does not hold (`stages.resolve` asks); its MLflow run's id."""
     run(cfg, upstream=upstream, stage_hash=stage_hash)
@@ -162,6 +171,7 @@ def _run(
             logger.log_dict(resolved, "config.json")
             for path in hydra_record():  # as typed, the overrides may hold the password: a scrubbed copy
                 logger.log_text(scrub(path.read_text()), f"hydra/{path.name}")
+        scrub_hydra_record()
         run_file.write_text(json.dumps({"run_id": logger.run_id}))
         runtime = build_runtime(cfg)
         sigterm = signal.getsignal(signal.SIGTERM)

@@ -41,9 +41,10 @@ def test_a_password_in_the_tracking_uri_appears_nowhere_in_the_run(tmp_path):
     stored = [p for p in artifacts.rglob("*") if p.is_file()]
     overrides = next(p for p in stored if p.name == "overrides.yaml").read_text()
     assert f"tracking.uri=http://trainer:***@127.0.0.1:{server.port}" in overrides
-    # Every file the store holds, the database included, and the run directory's own files; Hydra's record of
-    # the command line (.hydra/, in the run directory on this machine) keeps what was typed.
+    # Every file the store holds, the database included, and every file of the run directory, Hydra's record of
+    # the command line (.hydra/) included: it is rewritten with the password masked.
     files = stored + [tmp_path / "server.db"]
-    files += [p for p in run_dir.rglob("*") if p.is_file() and ".hydra" not in p.parts]
+    files += [p for p in run_dir.rglob("*") if p.is_file()]
+    assert (run_dir / ".hydra" / "overrides.yaml").exists()
     leaks = [p for p in files if PASSWORD.encode() in p.read_bytes()]
     assert leaks == []
