@@ -20,6 +20,7 @@ import socket
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 import urllib.error
 import urllib.request
@@ -157,6 +158,8 @@ def start_local_server(
             stdin=subprocess.DEVNULL,
             env=env,
             start_new_session=True,
+            # Linux ties this to the starting thread, not its process: only the main thread's server outlives none.
+            preexec_fn=_die_with_parent if threading.current_thread() is threading.main_thread() else None,
         )
     server = LocalServer(process, host, port, Path(log_path))
     server.credentials, server.private = credentials, private
@@ -166,6 +169,17 @@ def start_local_server(
         server.stop()
         raise
     return server
+
+
+def _die_with_parent() -> None:
+    """In the server's process before it runs: on Linux, SIGTERM it when the process that started it dies, even by
+    SIGKILL (a sweep killed outright would otherwise leave its server holding the store); elsewhere nothing."""
+    if not sys.platform.startswith("linux"):
+        return
+    import ctypes
+
+    PR_SET_PDEATHSIG = 1
+    ctypes.CDLL("libc.so.6", use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
 
 
 def _wait_healthy(server: LocalServer, timeout: float) -> None:

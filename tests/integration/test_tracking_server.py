@@ -100,3 +100,31 @@ def test_the_sweeps_server_asks_for_its_password_and_removes_its_users_at_stop(t
         experiment = MlflowClient(server.uri).create_experiment("with-auth")
         assert MlflowClient(server.uri).get_experiment(experiment).name == "with-auth"
     assert not server.running() and not server.private.exists()
+
+
+def test_a_server_outlives_no_process_that_started_it_even_one_killed_outright(tmp_path):
+    """A sweep killed by SIGKILL runs no cleanup: its server (started from the main thread) goes with it."""
+    import signal
+    import subprocess
+    import sys
+
+    import psutil
+
+    script = (
+        "import sys, time\n"
+        "from pathlib import Path\n"
+        "from orchestrator.tracking.server import start_local_server\n"
+        f"server = start_local_server('sqlite:///{tmp_path / 'server.db'}', Path({str(tmp_path / 'a')!r}))\n"
+        "print(server.process.pid, flush=True)\n"
+        "time.sleep(600)\n"
+    )
+    parent = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True)
+    try:
+        server_pid = int(parent.stdout.readline())
+        assert psutil.pid_exists(server_pid)
+        parent.send_signal(signal.SIGKILL)
+        parent.wait(30)
+        gone, _ = psutil.wait_procs([psutil.Process(server_pid)], timeout=30)
+        assert gone, "the server outlived the process that started it"
+    finally:
+        parent.kill()
