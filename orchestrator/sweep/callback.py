@@ -34,7 +34,7 @@ from hydra.experimental.callback import Callback
 from omegaconf import DictConfig
 
 from orchestrator.sweep import amp, physicsvae, report, tasks
-from orchestrator.tracking.uri import hide, redact, store_uri
+from orchestrator.tracking.uri import hide, redact, scrub, store_uri
 
 SWEEP_FILE = "sweep.json"
 SEQUENTIAL_LAUNCHER = "hydra._internal.core_plugins.basic_launcher.BasicLauncher"
@@ -150,7 +150,11 @@ class SweepCallback(Callback):
         self.logger.log_params({f"sweep.{k}": str(v) for k, v in params.items()})
         # `uri` is what the jobs log to; `store` is where the runs stay once the sweep is over.
         info = {"parent_run_id": self.logger.run_id, "uri": uri, "store": store, "experiment": experiment}
-        (self.sweep_dir / SWEEP_FILE).write_text(json.dumps(info))
+        # The jobs read the store from it, a password in its URI included: readable by this user alone.
+        fd = os.open(self.sweep_dir / SWEEP_FILE, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+        with os.fdopen(fd, "w") as f:
+            os.fchmod(f.fileno(), 0o600)
+            f.write(json.dumps(info))
         self.run_stages(config, uri, experiment)
 
     def run_stages(self, config: DictConfig, uri: str, experiment: str) -> None:
@@ -198,8 +202,18 @@ class SweepCallback(Callback):
             "stages.json",
         )
 
+    def scrub_record(self) -> None:
+        """Hydra's record of the multirun (`multirun.yaml`, written after the sweep started) with the passwords of
+        the URIs in it masked."""
+        path = self.sweep_dir / "multirun.yaml" if self.sweep_dir is not None else None
+        if path is not None and path.exists():
+            text = path.read_text()
+            if (clean := scrub(text)) != text:
+                path.write_text(clean)
+
     def abandon(self) -> None:
         """The sweep ends without `on_multirun_end` (at exit): its parent run FAILED, its server stopped."""
+        self.scrub_record()
         if self.logger is not None:
             self.logger.close("FAILED")  # no-op if closed already
             self.logger = None
@@ -208,6 +222,7 @@ class SweepCallback(Callback):
             self.server = None
 
     def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
+        self.scrub_record()
         if self.logger is None:
             atexit.unregister(self.abandon)
             self.abandon()

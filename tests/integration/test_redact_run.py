@@ -48,3 +48,24 @@ def test_a_password_in_the_tracking_uri_appears_nowhere_in_the_run(tmp_path):
     assert (run_dir / ".hydra" / "overrides.yaml").exists()
     leaks = [p for p in files if PASSWORD.encode() in p.read_bytes()]
     assert leaks == []
+
+
+def test_a_sweep_keeps_the_password_only_in_its_own_0600_file(tmp_path):
+    """A sweep's points read the store from sweep.json (0600, this user's); Hydra's multirun.yaml and every
+    point's record are masked, and nothing logged holds the password."""
+    artifacts = tmp_path / "artifacts"
+    with start_local_server(f"sqlite:///{tmp_path / 'server.db'}", artifacts) as server:
+        uri = f"http://trainer:{PASSWORD}@127.0.0.1:{server.port}"
+        sweep_dir = tmp_path / "sweep"
+        command = [sys.executable, "-m", "orchestrator", "-m", "scale=smoke", "motion=walk", "runtime=local"]
+        command += ["eval.video=false", "progress=false", "algo.loop.iterations=2", f"tracking.uri={uri}", "seed=0"]
+        command += [f"hydra.sweep.dir={sweep_dir}"]
+        proc = subprocess.run(command, cwd=ROOT, capture_output=True, text=True, timeout=600)
+        assert proc.returncode == 0, proc.stderr[-3000:]
+    assert PASSWORD not in proc.stdout and PASSWORD not in proc.stderr
+    sweep_file = sweep_dir / "sweep.json"
+    assert oct(sweep_file.stat().st_mode & 0o777) == "0o600" and PASSWORD in sweep_file.read_text()
+    assert (sweep_dir / "multirun.yaml").exists() and (sweep_dir / "0" / ".hydra" / "overrides.yaml").exists()
+    files = [p for p in [*sweep_dir.rglob("*"), *artifacts.rglob("*"), tmp_path / "server.db"] if p.is_file()]
+    leaks = [p for p in files if p != sweep_file and PASSWORD.encode() in p.read_bytes()]
+    assert leaks == []
