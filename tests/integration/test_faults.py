@@ -202,7 +202,10 @@ def test_a_ray_driver_killed_with_sigkill_resumes_into_the_same_mlflow_run(tmp_p
     last_logged = max(logged) // per_iteration
     assert killed_at >= last_logged - every  # at most one checkpoint interval is lost
 
-    resumed = orchestrator(*common, f"algo.loop.iterations={killed_at + 2}", "resume=true")
+    # Past every iteration the killed driver logged (it may have logged up to `every` - 1 past its checkpoint), so
+    # that the last two steps can only be the resumed run's.
+    target = max(killed_at, last_logged) + 2
+    resumed = orchestrator(*common, f"algo.loop.iterations={target}", "resume=true")
     try:
         out, err = resumed.communicate(timeout=400)
     finally:
@@ -215,7 +218,7 @@ def test_a_ray_driver_killed_with_sigkill_resumes_into_the_same_mlflow_run(tmp_p
     assert run.info.status == "FINISHED"
     assert len(client.search_runs([run.info.experiment_id])) == 1
     steps = sorted({m.step for m in client.get_metric_history(run_id, "throughput/iteration_s")})
-    assert steps[-2:] == [per_iteration * i for i in (killed_at + 1, killed_at + 2)]  # continued from the checkpoint
+    assert steps[-2:] == [per_iteration * i for i in (target - 1, target)]  # continued from the checkpoint
 
 
 # ---------------------------------------------------------------- the chaos benchmark
