@@ -28,7 +28,7 @@ from orchestrator.provenance import git_commit
 from orchestrator.runtime.base import Runtime
 from orchestrator.schema import Config
 from orchestrator.tracking.base import NoOpLogger, RunLogger, flatten
-from orchestrator.tracking.uri import scrub, scrub_tree, store_uri
+from orchestrator.tracking.uri import scrub, scrub_file, scrub_tree, store_uri
 from orchestrator.trainer import Trainer
 from orchestrator.upstream import StageError, Upstream
 from orchestrator.world import load_character, load_character_and_library
@@ -85,9 +85,7 @@ def scrub_hydra_record() -> None:
     """Hydra's record on disk with the passwords of the URIs in it masked (the overrides as typed may hold
     `tracking.uri=postgresql://user:pw@...`): the password stays only where the user keeps it."""
     for path in hydra_record():
-        text = path.read_text()
-        if (clean := scrub(text)) != text:
-            path.write_text(clean)
+        scrub_file(path)
 
 
 def train_stage(cfg: Config, upstream: dict[str, Upstream], stage_hash: str) -> str:

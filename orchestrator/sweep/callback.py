@@ -33,8 +33,9 @@ from typing import Any
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig
 
+from orchestrator.cluster.files import write_secret
 from orchestrator.sweep import amp, physicsvae, report, tasks
-from orchestrator.tracking.uri import hide, redact, scrub, store_uri
+from orchestrator.tracking.uri import hide, redact, scrub_file, store_uri
 
 SWEEP_FILE = "sweep.json"
 SEQUENTIAL_LAUNCHER = "hydra._internal.core_plugins.basic_launcher.BasicLauncher"
@@ -151,10 +152,7 @@ class SweepCallback(Callback):
         # `uri` is what the jobs log to; `store` is where the runs stay once the sweep is over.
         info = {"parent_run_id": self.logger.run_id, "uri": uri, "store": store, "experiment": experiment}
         # The jobs read the store from it, a password in its URI included: readable by this user alone.
-        fd = os.open(self.sweep_dir / SWEEP_FILE, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
-        with os.fdopen(fd, "w") as f:
-            os.fchmod(f.fileno(), 0o600)
-            f.write(json.dumps(info))
+        write_secret(self.sweep_dir / SWEEP_FILE, json.dumps(info))
         self.run_stages(config, uri, experiment)
 
     def run_stages(self, config: DictConfig, uri: str, experiment: str) -> None:
@@ -207,9 +205,7 @@ class SweepCallback(Callback):
         the URIs in it masked."""
         path = self.sweep_dir / "multirun.yaml" if self.sweep_dir is not None else None
         if path is not None and path.exists():
-            text = path.read_text()
-            if (clean := scrub(text)) != text:
-                path.write_text(clean)
+            scrub_file(path)
 
     def abandon(self) -> None:
         """The sweep ends without `on_multirun_end` (at exit): its parent run FAILED, its server stopped."""

@@ -13,7 +13,6 @@ temporary folder: other users of the machine cannot reach the store through it, 
 from __future__ import annotations
 
 import os
-import secrets
 import shutil
 import signal
 import socket
@@ -141,10 +140,11 @@ def start_local_server(
     private, credentials = None, {}
     if auth:
         from orchestrator.cluster import mlflow_auth
+        from orchestrator.cluster.files import new_password
 
         mlflow_auth.require_auth_app()
         private = Path(tempfile.mkdtemp(prefix="mlflow-auth-"))  # 0700
-        password = secrets.token_urlsafe(24)
+        password = new_password()
         mlflow_auth.write_config(private / "auth.ini", f"sqlite:///{private / 'users.db'}")
         env.update(mlflow_auth.server_env(private / "auth.ini", password))
         command[4:4] = ["--app-name", "basic-auth"]

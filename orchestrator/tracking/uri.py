@@ -116,6 +116,13 @@ def scrub(text: str) -> str:
     return text
 
 
+def scrub_file(path: Path) -> None:
+    """`path` rewritten with `scrub` applied, if that changes it (a record on disk of a command as typed)."""
+    text = path.read_text()
+    if (clean := scrub(text)) != text:
+        path.write_text(clean)
+
+
 def scrub_tree(obj: Any) -> Any:
     """`obj` (nested dicts, lists and tuples) with `scrub` applied to every string in it."""
     if isinstance(obj, str):
