@@ -1,6 +1,7 @@
 """The default loop's samples per second at two commits, in alternating blocks on this machine.
 
-    python scripts/loop_ab.py BEFORE AFTER [--rounds 3] [--iterations 20] [--warmup 4] [OVERRIDES...]
+    python scripts/loop_ab.py BEFORE AFTER [--rounds 3] [--iterations 20] [--warmup 4]
+        [--after-set KEY=VALUE ...] [OVERRIDES...]
 
 Each commit is checked out in a temporary worktree; every round runs the default run
 (`python -m orchestrator` as shipped, tracking off, seed 0, any Hydra OVERRIDES) once at
@@ -8,7 +9,9 @@ each commit, in turn, in a fresh process: `--warmup` untimed iterations, then
 `--iterations` timed ones. It prints each block's samples/s and seconds per iteration,
 and the median over rounds of each pair's ratio AFTER / BEFORE: the two sides share
 whatever else the machine is doing. The measuring code lives here, not in either tree,
-so any commit with `orchestrator.build.untracked_trainer` can be measured.
+so any commit with `orchestrator.build.untracked_trainer` can be measured. `--after-set`
+(repeatable) gives a Hydra override to the AFTER side only: a setting measured against the
+shipped default at the same commit, e.g. `loop_ab.py HEAD HEAD --after-set algo.vae.batch_size=256`.
 """
 
 from __future__ import annotations
@@ -70,6 +73,7 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, default=3)
     parser.add_argument("--iterations", type=int, default=20)
     parser.add_argument("--warmup", type=int, default=4)
+    parser.add_argument("--after-set", action="append", default=[], metavar="KEY=VALUE")
     args, overrides = parser.parse_known_args()
     with tempfile.TemporaryDirectory(prefix="loop-ab-") as tmp:
         trees = {}
@@ -79,7 +83,11 @@ def main() -> None:
         try:
             ratios = []
             for r in range(args.rounds):
-                got = {side: block(tree, args.iterations, args.warmup, overrides) for side, tree in trees.items()}
+                extra = {"before": [], "after": args.after_set}
+                got = {
+                    side: block(tree, args.iterations, args.warmup, [*overrides, *extra[side]])
+                    for side, tree in trees.items()
+                }
                 ratios.append(got["after"]["samples_per_s"] / got["before"]["samples_per_s"])
                 print(
                     f"round {r + 1}: before {got['before']['samples_per_s']:.0f} samples/s "
