@@ -419,3 +419,24 @@ def test_pulses_mimic_goal_is_what_its_posterior_reads_and_shows_drift(walk_run)
     torch.testing.assert_close(terms["kl"], by_hand)
     with pytest.raises(ValueError, match="vae.goal"):
         VAEConfig(objective="controlvae", goal="mimic")
+
+
+@pytest.mark.parametrize(
+    ("objective", "prior"), [("controlvae", "conditional"), ("physicsvae", "standard_normal"), ("pulse", "learned")]
+)
+def test_draws_made_ahead_are_the_draws_the_loss_makes(walk_run, objective, prior):
+    """What a compiled loss is given (`loss_inputs`): the same random numbers, as many, in the order the loss
+    draws them, and this update's beta."""
+    torch.manual_seed(0)
+    learner, batch = small_learner(objective, prior), random_batch(walk_run)
+    learner.before_update(batch)
+    start = learner.generator.get_state()
+    total, terms = learner.loss(batch)
+    after_eager = learner.generator.get_state()
+    learner.generator.set_state(start)
+    inputs = learner.loss_inputs(batch)
+    assert torch.equal(learner.generator.get_state(), after_eager)  # as many numbers drawn
+    assert float(inputs["beta"]) == pytest.approx(learner.beta)
+    total_ahead, terms_ahead = learner.loss(batch, **inputs)
+    assert float(total_ahead) == float(total)
+    assert {k: float(v) for k, v in terms_ahead.items()} == {k: float(v) for k, v in terms.items()}

@@ -14,11 +14,13 @@ Safety:
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
 import torch
 from torch import nn
 
@@ -103,6 +105,9 @@ def all_finite(tensors: Iterable[torch.Tensor]) -> bool:
     return all(bool(torch.isfinite(t).all()) for t in tensors if t.is_floating_point())
 
 
+_NUMPY_FLOATS = {np.dtype(np.float16), np.dtype(np.float32), np.dtype(np.float64)}
+
+
 def as_tensor(x: Any, dtype: torch.dtype = torch.float32, device: torch.device | str | None = None) -> torch.Tensor:
     """x as a tensor (floating point as `dtype`) on `device` (where it is, when None). A CPU batch bound for a
     GPU goes through pinned memory with a non-blocking copy."""
@@ -114,8 +119,8 @@ def as_tensor(x: Any, dtype: torch.dtype = torch.float32, device: torch.device |
     if device is None:
         return t
     device = torch.device(device)
-    if device.type == "cuda" and t.device.type == "cpu":
-        return t.pin_memory().to(device, non_blocking=True)
+    if device.type == "cuda" and t.device.type == "cpu" and not torch.compiler.is_compiling():
+        return t.pin_memory().to(device, non_blocking=True)  # (a compiled graph cannot pin: it copies plainly)
     return t.to(device)
 
 
@@ -126,6 +131,7 @@ class Learner:
     """
 
     name = "learner"
+    double_backward = False  # the loss takes a gradient of a gradient (torch.compile cannot trace it)
 
     def __init__(
         self,
@@ -143,6 +149,40 @@ class Learner:
         self.version = 0
         self.skipped_updates = 0
         self._published: Weights | None = None
+
+    def compile(self, mode: str | None = None) -> None:
+        """Have `update` call the loss through `torch.compile` (`mode`: None for the default, or e.g.
+        "reduce-overhead" for CUDA graphs): the same loss and gradients to float rounding, fewer kernels and
+        less Python per update, after a compile of seconds to a minute on the first update (and again when a
+        shape changes: shapes are compiled static). The loss stays the pure function it was; only its caller
+        changes."""
+        if self.double_backward:
+            raise ValueError(f"{self.name}: its loss takes a gradient of a gradient, which torch.compile cannot")
+        compiled = torch.compile(self.loss, mode=mode, dynamic=False)
+
+        def loss(batch: Any) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+            # the copies to the device, the random draws and the schedules stay outside the graph
+            return compiled(self.on_device(batch), **self.loss_inputs(batch))
+
+        self.loss = loss
+
+    def loss_inputs(self, batch: Any) -> dict[str, Any]:
+        """What `loss(batch)` would read from the learner's changing state (its random draws, a weight on a
+        schedule), made here and given to it as keyword arguments by a compiled loss, whose graph can neither
+        draw from a generator nor read a count without recompiling when it changes (`VAELearner`). None here."""
+        return {}
+
+    def on_device(self, batch: Any) -> Any:
+        """The batch (a dataclass) with its floating-point arrays as float32 tensors on this learner's device,
+        as `loss` would make them; its other fields, and a batch of another type, as they are."""
+        if not dataclasses.is_dataclass(batch):
+            return batch
+        moved = {}
+        for field in dataclasses.fields(batch):
+            x = getattr(batch, field.name)
+            if x.is_floating_point() if isinstance(x, torch.Tensor) else getattr(x, "dtype", None) in _NUMPY_FLOATS:
+                moved[field.name] = self.tensor(x)
+        return dataclasses.replace(batch, **moved)
 
     # The step ----------------------------------------------------------------
     def loss(self, batch: Any) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:

@@ -144,6 +144,7 @@ class DiscriminatorLearner(Learner):
     """
 
     name = "disc"
+    double_backward = True  # the gradient penalty (AMP Eq. 8)
 
     def __init__(
         self,

@@ -15,6 +15,7 @@ objective
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import torch
@@ -184,6 +185,7 @@ class VAELearner(Learner):
         device: torch.device | str = "cpu",
     ):
         self.config = c = config or VAEConfig()
+        self.action_dim = action_dim
         self.vae = build_controller(num_bodies, action_dim, c).to(device)
         optimizer = make_optimizer(c.optimizer, self.vae.parameters(), c.lr)
         super().__init__(self.vae, optimizer, c.grad_clip, device)
@@ -215,22 +217,42 @@ class VAELearner(Learner):
         if self.vae.goal_norm is not None:  # the goals the pulse objective will give the posterior
             self.vae.goal_norm.update(self._goals(self.tensor(batch.states), self.tensor(batch.reference)))
 
-    def loss(self, batch: VAEBatch) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+    def loss(
+        self, batch: VAEBatch, draws: tuple[torch.Tensor, ...] | None = None, beta: torch.Tensor | None = None
+    ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        """The objective's loss and terms. Its standard-normal draws (latent samples, action noise) come from
+        the learner's generator as it goes and β from its schedule at this update, or, given `draws` and
+        `beta` (`loss_inputs`), from those."""
         objective = self.config.objective
         states = self.tensor(batch.states)
+        drawn = iter(draws) if draws is not None else None
+        beta = self.beta if beta is None else beta
+
+        def randn(shape: torch.Size) -> torch.Tensor:
+            return torch.randn(shape, generator=self.generator, device=self.device) if drawn is None else next(drawn)
+
         if objective == "controlvae":
-            total, terms = self._controlvae(states, self.tensor(batch.reference))
+            total, terms = self._controlvae(states, self.tensor(batch.reference), randn, beta)
         elif objective == "physicsvae":
-            total, terms = self._physicsvae(states, self.tensor(batch.actions))
+            total, terms = self._physicsvae(states, self.tensor(batch.actions), randn, beta)
         else:
-            total, terms = self._pulse(states, self.tensor(batch.reference), self.tensor(batch.actions))
-        terms["beta"] = torch.tensor(self.beta)
+            total, terms = self._pulse(states, self.tensor(batch.reference), self.tensor(batch.actions), randn, beta)
+        terms["beta"] = torch.as_tensor(beta)
         return total, terms
 
-    def _noise(self, like: torch.Tensor) -> torch.Tensor:
-        return torch.randn(like.shape, generator=self.generator, device=like.device) * self.config.action_noise
+    def loss_inputs(self, batch: VAEBatch) -> dict[str, Any]:
+        """The standard-normal draws `loss(batch)` makes, in its order and from the same generator, drawn ahead,
+        and this update's β as a tensor: a compiled loss is given them, so that it sees the same numbers."""
+        n, steps = batch.states.shape[0], batch.states.shape[1] - 1
+        z, a = self.config.latent_dim, self.action_dim
+        if self.config.objective == "controlvae":  # per step: the latent sample, then the action noise
+            shapes = [(n, z), (n, a)] * (batch.reference.shape[1] - 1)
+        else:
+            shapes = [(n, steps, z)]
+        draws = tuple(torch.randn(shape, generator=self.generator, device=self.device) for shape in shapes)
+        return {"draws": draws, "beta": torch.tensor(self.beta, device=self.device)}
 
-    def _controlvae(self, states: torch.Tensor, reference: torch.Tensor):
+    def _controlvae(self, states: torch.Tensor, reference: torch.Tensor, randn, beta):
         c = self.config
         ref_features = body_state.features(reference)  # [N, T+1, D]
         bs = states[:, 0]
@@ -238,8 +260,8 @@ class VAELearner(Learner):
         predicted, kls, actions = [], [], []
         for t in range(reference.shape[1] - 1):
             q, p = self.vae.encode(s, ref_features[:, t + 1])
-            a = self.vae.act(s, q.rsample(self.generator))
-            bs = self.world_model(bs, a + self._noise(a), s)
+            a = self.vae.act(s, q.rsample(eps=randn(q.mean.shape)))
+            bs = self.world_model(bs, a + randn(a.shape) * c.action_noise, s)
             s = body_state.features(bs)  # the prediction the loss compares, and the next step's state
             predicted.append(s)
             kls.append(gaussian_kl(q.mean, q.log_std, p.mean, p.log_std))
@@ -251,32 +273,30 @@ class VAELearner(Learner):
             torch.stack(actions, 1),
             self.state_weights,
             c.gamma,
-            self.beta,
+            beta,
             c.w_a1,
             c.w_a2,
         )
 
-    def _physicsvae(self, states: torch.Tensor, expert_actions: torch.Tensor):
+    def _physicsvae(self, states: torch.Tensor, expert_actions: torch.Tensor, randn, beta):
         s = body_state.features(states)  # [N, T+1, D]
         q, p = self.vae.encode(s[:, :-1], s[:, 1:])
-        a = self.vae.act(s[:, :-1], q.rsample(self.generator))
+        a = self.vae.act(s[:, :-1], q.rsample(eps=randn(q.mean.shape)))
         if self.config.alpha > 0:
             predicted_next = self.world_model.next_features(states[:, :-1], a)
         else:
             predicted_next = s[:, 1:]
         kl = gaussian_kl(q.mean, q.log_std, p.mean, p.log_std)
         c = self.config
-        return physicsvae_loss(
-            a, expert_actions, predicted_next, s[:, 1:], kl, c.alpha, self.beta, c.physicsvae_reduction
-        )
+        return physicsvae_loss(a, expert_actions, predicted_next, s[:, 1:], kl, c.alpha, beta, c.physicsvae_reduction)
 
     def _goals(self, states: torch.Tensor, reference: torch.Tensor) -> torch.Tensor:
         """The goal [N, T, G] of each state states[:, t] toward the reference's next state reference[:, t + 1]."""
         return goal(self.config.goal, states[:, :-1], reference[:, 1:])
 
-    def _pulse(self, states: torch.Tensor, reference: torch.Tensor, teacher_actions: torch.Tensor):
+    def _pulse(self, states: torch.Tensor, reference: torch.Tensor, teacher_actions: torch.Tensor, randn, beta):
         s = body_state.features(states[:, :-1])
         q, p = self.vae.encode(s, self._goals(states, reference))
-        a = self.vae.act(s, q.rsample(self.generator))
+        a = self.vae.act(s, q.rsample(eps=randn(q.mean.shape)))
         kl = gaussian_kl(q.mean, q.log_std, p.mean, p.log_std)
-        return pulse_loss(a, teacher_actions, q.mean, kl, self.config.lambda_regu, self.beta)
+        return pulse_loss(a, teacher_actions, q.mean, kl, self.config.lambda_regu, beta)

@@ -31,7 +31,7 @@ def controlvae_loss(
     actions: torch.Tensor,
     state_weights: torch.Tensor,
     gamma: float,
-    beta: float,
+    beta: float | torch.Tensor,
     w_a1: float,
     w_a2: float,
 ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
@@ -56,7 +56,7 @@ def physicsvae_loss(
     next_states: torch.Tensor,
     kl: torch.Tensor,
     alpha: float,
-    beta: float,
+    beta: float | torch.Tensor,
     reduction: str = "mean",
 ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """PhysicsVAE's Eq. 1: ‖a − a'‖² + α·‖s_{t+1} − s'_{t+1}‖² + β·KL(N(μ, σ) ‖ N(0, I)).
@@ -88,7 +88,7 @@ def pulse_loss(
     latent_means: torch.Tensor,
     kl: torch.Tensor,
     lambda_regu: float,
-    beta: float,
+    beta: float | torch.Tensor,
 ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """PULSE's Eq. 3: ‖a_teacher − a‖² + λ·L_regu + β·KL(E ‖ R).
 

@@ -136,6 +136,9 @@ class Normalizer(nn.Module):
         """(mean, std) as `dtype`, or None before any sample. A network applies its normalisers at every step
         of a rollout while the statistics stay put, so the conversion is kept until they change: `update`,
         `load_state_dict` and in-place writes bump the buffers' version counters, `.to()` replaces them."""
+        if torch.compiler.is_compiling():  # in a compiled graph: no cache and no branch on the data
+            std = torch.where(self.count > 0, self.std, torch.ones_like(self.mean))  # mean is 0 before a sample
+            return self.mean.to(dtype), std.to(dtype)
         buffers = (self.count, self.mean, self.m2)
         key = (dtype, torch.is_inference_mode_enabled(), *(t._version for t in buffers))
         cached = self._cached

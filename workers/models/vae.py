@@ -35,8 +35,10 @@ class Gaussian:
         self.mean = mean
         self.log_std = log_std.expand_as(mean)
 
-    def rsample(self, generator: torch.Generator | None = None) -> torch.Tensor:
-        eps = torch.randn(self.mean.shape, generator=generator, dtype=self.mean.dtype, device=self.mean.device)
+    def rsample(self, generator: torch.Generator | None = None, eps: torch.Tensor | None = None) -> torch.Tensor:
+        """mean + std · eps, with eps standard normal: from `generator`, or given."""
+        if eps is None:
+            eps = torch.randn(self.mean.shape, generator=generator, dtype=self.mean.dtype, device=self.mean.device)
         return self.mean + self.log_std.exp() * eps
 
 

@@ -1,0 +1,121 @@
+"""`Learner.compile`: a compiled loss gives the eager loss and gradients on a fixed batch, and the same
+parameters after updates; a loss that takes a gradient of a gradient is refused in one line; the batch
+reaches the compiled loss already on the device."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from workers.learners.discriminator import DiscriminatorBatch, DiscriminatorLearner
+from workers.learners.vae import VAEBatch, VAEConfig, VAELearner
+from workers.learners.world_model import WorldModelBatch, WorldModelConfig, WorldModelLearner
+from workers.models.nets import Normalizer
+from workers.models.world_model import WorldModel
+
+NUM_BODIES, ACTION_DIM, DT = 15, 28, 1.0 / 30.0
+
+
+def _batch(n: int = 8, t: int = 3) -> WorldModelBatch:
+    gen = torch.Generator().manual_seed(1)
+    pos = torch.randn(n, t + 1, NUM_BODIES, 3, generator=gen) * 0.3 + torch.tensor([0.0, 0.0, 1.0])
+    quat = torch.randn(n, t + 1, NUM_BODIES, 4, generator=gen)
+    quat = quat / quat.norm(dim=-1, keepdim=True)
+    vel = torch.randn(n, t + 1, NUM_BODIES, 6, generator=gen) * 0.5
+    return WorldModelBatch(torch.cat((pos, quat, vel), -1), torch.randn(n, t, ACTION_DIM, generator=gen) * 0.3)
+
+
+def _learner() -> WorldModelLearner:
+    torch.manual_seed(0)
+    return WorldModelLearner(NUM_BODIES, ACTION_DIM, DT, WorldModelConfig(hidden=(32, 32), rollout_steps=3))
+
+
+@pytest.mark.slow  # torch.compile's first call builds C++ kernels: tens of seconds on this machine
+def test_compiled_world_model_matches_eager() -> None:
+    batch = _batch()
+    eager, compiled = _learner(), _learner()
+    compiled.compile()
+    for learner in (eager, compiled):
+        learner.before_update(batch)
+
+    losses, grads = [], []
+    for learner in (eager, compiled):
+        total, terms = learner.loss(batch)
+        learner.optimizer.zero_grad(set_to_none=True)
+        total.backward()
+        losses.append((float(total), {k: float(v) for k, v in terms.items()}))
+        grads.append([p.grad.clone() for p in learner.parameters()])
+    assert losses[1][0] == pytest.approx(losses[0][0], rel=1e-5)
+    assert losses[1][1] == pytest.approx(losses[0][1], rel=1e-5)
+    for g_eager, g_compiled in zip(*grads, strict=True):
+        torch.testing.assert_close(g_compiled, g_eager, rtol=1e-4, atol=1e-6)
+
+    for learner in (eager, compiled):
+        for _ in range(2):
+            metrics = learner.update(batch)
+            assert "grad_norm" in metrics  # a step was taken, not skipped
+    for p_eager, p_compiled in zip(eager.parameters(), compiled.parameters(), strict=True):
+        torch.testing.assert_close(p_compiled, p_eager, rtol=1e-4, atol=1e-6)
+    assert compiled.version == eager.version == 2
+    assert compiled.state_dict()["module"].keys() == eager.state_dict()["module"].keys()
+
+
+def test_discriminator_refuses_compile() -> None:
+    learner = DiscriminatorLearner(105)
+    with pytest.raises(ValueError, match="disc: its loss takes a gradient of a gradient"):
+        learner.compile()
+
+
+def test_on_device_converts_the_float_arrays_only() -> None:
+    """What a compiled loss is given: float arrays as float32 tensors on the device, the rest untouched."""
+    learner = DiscriminatorLearner(4)
+    data = np.arange(8.0).reshape(2, 4)  # float64
+    skills = np.array([0, 1])
+    batch = learner.on_device(DiscriminatorBatch(data, torch.ones(3, 4, dtype=torch.float64), skills, None))
+    assert batch.data_obs.dtype == torch.float32 and batch.data_obs.device == learner.device
+    torch.testing.assert_close(batch.data_obs, torch.arange(8.0).reshape(2, 4))
+    assert batch.policy_obs.dtype == torch.float32
+    assert batch.data_skill is skills and batch.policy_skill is None
+    assert learner.on_device(data) is data  # not a dataclass: as it is
+
+
+@pytest.mark.slow  # compiles
+def test_compiled_normalizer_matches_eager_before_and_after_samples() -> None:
+    """In a graph the normaliser skips its cache and its branch: identity before any sample, (x - mean) / std
+    after, as in eager."""
+    norm = Normalizer(3)
+    compiled = torch.compile(norm, dynamic=False)
+    x = torch.tensor([[1.0, -2.0, 3.0], [0.5, 0.0, -1.0]])
+    torch.testing.assert_close(compiled(x), x)  # no sample yet
+    norm.update(torch.tensor([[0.0, 1.0, 2.0], [2.0, 5.0, 2.0]]))  # mean (1, 3, 2), std (1, 2, eps)
+    expected = (x - torch.tensor([1.0, 3.0, 2.0])) / torch.tensor([1.0, 2.0, 1e-2])
+    torch.testing.assert_close(norm(x), expected)
+    torch.testing.assert_close(compiled(x), expected)
+
+
+@pytest.mark.slow  # compiles
+def test_compiled_controlvae_matches_eager_with_the_same_draws() -> None:
+    """The VAE's loss draws latent samples and action noise; compiled, it is given them drawn ahead from the
+    same generator, so its loss and gradients match eager's from the same generator state."""
+    states = _batch(n=8, t=3).states
+    batch = VAEBatch(states, states.clone())
+
+    def learner() -> VAELearner:
+        torch.manual_seed(0)
+        config = VAEConfig(latent_dim=4, encoder_hidden=(16,), num_experts=2, policy_hidden=(16,), gate_hidden=(8,))
+        return VAELearner(NUM_BODIES, ACTION_DIM, config, world_model=WorldModel(NUM_BODIES, ACTION_DIM, (16,)))
+
+    eager, compiled = learner(), learner()
+    compiled.compile()
+    results = []
+    for vae in (eager, compiled):
+        vae.before_update(batch)
+        total, terms = vae.loss(batch)
+        vae.optimizer.zero_grad(set_to_none=True)
+        total.backward()
+        results.append((float(total), float(terms["kl"]), [p.grad.clone() for p in vae.parameters()]))
+    assert results[1][0] == pytest.approx(results[0][0], rel=1e-5)
+    assert results[1][1] == pytest.approx(results[0][1], rel=1e-5)
+    for g_eager, g_compiled in zip(results[0][2], results[1][2], strict=True):
+        torch.testing.assert_close(g_compiled, g_eager, rtol=1e-4, atol=1e-6)
