@@ -26,10 +26,22 @@ def main(argv: list[str] | None = None) -> int:
     learners.add_argument("--threads", type=int, help="torch.set_num_threads (default: torch's default)")
     learners.add_argument("--seed", type=int, default=0)
     learners.add_argument("--device", default="cpu", choices=("cpu", "cuda"), help="where the learners compute")
+    learners.add_argument(
+        "--compile",
+        default="off",
+        choices=("off", "default", "reduce-overhead"),
+        help="time the updates with each loss through torch.compile in this mode (the discriminator's stays eager)",
+    )
     device = sub.add_parser("device", help="the GPU check: learners and a paper-size iteration on cuda and cpu")
     device.add_argument("--devices", default="cuda,cpu", help="comma-separated subset of cuda,cpu")
     device.add_argument("--seconds", type=float, default=3.0, help="time budget of each learner measurement")
     device.add_argument("--threads", type=int, help="torch.set_num_threads for the CPU (default: torch's default)")
+    device.add_argument(
+        "--compile",
+        default="reduce-overhead",
+        choices=("off", "default", "reduce-overhead"),
+        help="on the GPU, the small learners again with their losses compiled in this mode",
+    )
     pipeline = sub.add_parser("pipeline", help="end-to-end samples/s and updates/s, local against Ray")
     pipeline.add_argument("--algos", default="controlvae,amp,tracker", help="comma-separated methods (conf/algo/)")
     pipeline.add_argument("--scale", default="smoke", help="the scale of every method's sizes (conf/scale/)")
@@ -109,7 +121,14 @@ def main(argv: list[str] | None = None) -> int:
 
         try:
             result = bench_learners.run(
-                names, sizes, args.seconds, args.threads, args.seed, lambda m: print(m, file=sys.stderr), args.device
+                names,
+                sizes,
+                args.seconds,
+                args.threads,
+                args.seed,
+                lambda m: print(m, file=sys.stderr),
+                args.device,
+                args.compile,
             )
         except DeviceError as e:
             parser.exit(2, f"error: {e}\n")
@@ -122,7 +141,9 @@ def main(argv: list[str] | None = None) -> int:
         if not devices or not set(devices) <= {"cpu", "cuda"}:
             parser.error(f"--devices: expected cuda and/or cpu, got {args.devices}")
         try:
-            result = bench_device.run(devices, args.seconds, args.threads, lambda m: print(m, file=sys.stderr))
+            result = bench_device.run(
+                devices, args.seconds, args.threads, lambda m: print(m, file=sys.stderr), args.compile
+            )
         except DeviceError as e:
             parser.exit(2, f"error: {e}\n")
         text = bench_device.format_report(result)

@@ -12,7 +12,11 @@ It needs torch (with CUDA), numpy and mujoco only: nothing on its import path re
   states an iteration and trains the world model 8 times on 512 windows of 8 steps and the VAE 8 times on
   512 rollouts of 24 steps (replay ratios 16 and 48), so an iteration's updates are 8 + 8 of
   `bench learners`' paper-size world-model and VAE updates; the time of those 16 (after one of each to
-  warm up) and the ratio of the CPU's to the GPU's.
+  warm up) and the ratio of the CPU's to the GPU's;
+- on the GPU, unless `--compile off`: the small-size learners again with their losses through
+  `torch.compile` (default mode "reduce-overhead": CUDA graphs, which pay where an update is many small
+  kernels), their compile time, and the compiled / eager ratio of updates/s. A compile that fails (no
+  Triton, no C compiler) is reported and the rest of the check stands.
 """
 
 from __future__ import annotations
@@ -48,7 +52,13 @@ def paper_iteration(device: torch.device, seed: int = 0) -> dict[str, Any]:
     return out
 
 
-def run(devices: list[str], seconds: float = 3.0, threads: int | None = None, progress=None) -> dict[str, Any]:
+def run(
+    devices: list[str],
+    seconds: float = 3.0,
+    threads: int | None = None,
+    progress=None,
+    compile_mode: str = "reduce-overhead",
+) -> dict[str, Any]:
     for dev in devices:  # a GPU that is not there is refused before anything runs
         bench_learners.resolve_device(dev, "--devices")
     if threads:
@@ -66,6 +76,16 @@ def run(devices: list[str], seconds: float = 3.0, threads: int | None = None, pr
             progress(f"paper-size ControlVAE iteration on {dev} ...")
         resolved = bench_learners.resolve_device(dev, "--devices")
         result["devices"][dev] = {"learners": learners, "paper_iteration": paper_iteration(resolved)}
+        if dev == "cuda" and compile_mode != "off":
+            if progress:
+                progress(f"small learners compiled ({compile_mode}) on {dev} ...")
+            try:
+                compiled = bench_learners.run(
+                    sizes=["small"], seconds=seconds, progress=progress, device=dev, compile_mode=compile_mode
+                )
+            except Exception as e:  # noqa: BLE001 - a failed compile is a finding, not the end of the check
+                compiled = {"error": f"{type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}"}
+            result["devices"][dev]["compiled"] = compiled
     return result
 
 
@@ -78,7 +98,26 @@ def format_report(r: dict[str, Any]) -> str:
             f"paper-size ControlVAE iteration on {dev}: world model 8 updates {it['world_model_s']:.2f} s, "
             f"VAE 8 updates {it['vae_s']:.2f} s, {it['iteration_s']:.2f} s in all"
         )
+        compiled = x.get("compiled")
+        if compiled and "error" in compiled:
+            lines.append(f"compiled small learners on {dev}: failed ({compiled['error']})")
+        elif compiled:
+            lines += ["", format_table_compiled(compiled, x["learners"])]
     if {"cpu", "cuda"} <= set(r["devices"]):
         cpu, gpu = (r["devices"][d]["paper_iteration"]["iteration_s"] for d in ("cpu", "cuda"))
         lines.append(f"paper-size iteration, CPU / GPU: {cpu:.2f} s / {gpu:.2f} s = {cpu / gpu:.1f}x")
+    return "\n".join(lines)
+
+
+def format_table_compiled(compiled: dict[str, Any], eager: dict[str, Any]) -> str:
+    """The compiled run's table and, per learner, compiled / eager updates/s at the small size."""
+    lines = [bench_learners.format_table(compiled)]
+    rate = {(x["learner"], x["size"]): x["updates_per_s"] for x in eager["results"]}
+    for x in compiled["results"]:
+        key = (x["learner"], x["size"])
+        if x["compiled"] and key in rate:
+            lines.append(
+                f"{x['learner']} ({x['size']}): compiled / eager = {x['updates_per_s'] / rate[key]:.2f}x "
+                f"after a {x['compile_s']:.0f} s compile"
+            )
     return "\n".join(lines)

@@ -29,6 +29,11 @@ random actions and observations; timing does not depend on the values), then:
   on the same device and threads; share of machine = achieved / that, how far
   the update is from what the device can do at its best.
 
+`compile_mode` ("off", "default" or "reduce-overhead", `--compile`): with a mode, each
+learner's loss runs through `torch.compile` (`Learner.compile`) after the FLOPs are counted on
+an eager update; the first compiled update's time is reported as `compile_s`. The
+discriminator's loss (a gradient penalty: a gradient of a gradient) stays eager.
+
 `device` ("cpu" or "cuda") is where the learners compute (`runtime.learner_device`):
 batches start on the CPU, as a replay buffer hands them over, and each update copies
 them (pinned, non-blocking); on a GPU every timing synchronises the device first.
@@ -324,8 +329,15 @@ class MatmulReplay:
 
 
 # The measurement -------------------------------------------------------------------
-def measure(case: Case, seconds: float, machine_gflops: float = float("nan")) -> dict[str, Any]:
-    """FLOPs, updates/s, achieved and peak matmul rates of one learner at one size."""
+COMPILE_MODES = ("off", "default", "reduce-overhead")
+
+
+def measure(
+    case: Case, seconds: float, machine_gflops: float = float("nan"), compile_mode: str = "off"
+) -> dict[str, Any]:
+    """FLOPs, updates/s, achieved and peak matmul rates of one learner at one size. With `compile_mode` other
+    than "off" the FLOPs are counted on an eager update, then the loss is compiled (`Learner.compile`), the
+    first compiled update timed as `compile_s`, and the compiled updates timed."""
     learner, batch = case.learner, case.batch
     device = learner.device
     recorder = MatmulRecorder()
@@ -336,7 +348,17 @@ def measure(case: Case, seconds: float, machine_gflops: float = float("nan")) ->
     first = time.perf_counter() - t0
     flops = recorder.flops
     replay = MatmulReplay(recorder, device=device)
-    if first < 0.25 * seconds or device.type == "cuda":  # one more warm-up round when it is cheap
+    compile_s = float("nan")
+    if compile_mode != "off":
+        learner.compile(None if compile_mode == "default" else compile_mode)
+        t0 = time.perf_counter()
+        learner.update(batch)
+        _sync(device)
+        compile_s = time.perf_counter() - t0
+        learner.update(batch)  # CUDA graphs are recorded on the calls after the first
+    if (
+        first < 0.25 * seconds or device.type == "cuda" or compile_mode != "off"
+    ):  # one more warm-up round when it is cheap
         learner.update(batch)
         replay.run()
     updates: list[float] = []
@@ -367,6 +389,8 @@ def measure(case: Case, seconds: float, machine_gflops: float = float("nan")) ->
         "share_of_machine_peak": achieved / 1e9 / machine_gflops if flops else float("nan"),
         "matmul_s_median": matmul_s,
         "recorded_update_s": first,
+        "compiled": None if compile_mode == "off" else compile_mode,
+        "compile_s": compile_s,
         "matmul_calls_per_update": len(recorder.order),
         "distinct_matmuls": len(recorder.calls),
         "top_matmuls": replay.top(5),
@@ -392,8 +416,13 @@ def run(
     seed: int = 0,
     progress: Callable[[str], None] | None = None,
     device: str = "cpu",
+    compile_mode: str = "off",
 ) -> dict[str, Any]:
-    """Every learner at every size on `device` ("cpu" or "cuda": a DeviceError when there is no GPU)."""
+    """Every learner at every size on `device` ("cpu" or "cuda": a DeviceError when there is no GPU), with the
+    losses compiled unless `compile_mode` is "off" (the discriminator's, which torch.compile cannot take,
+    stays eager and says so)."""
+    if compile_mode not in COMPILE_MODES:
+        raise ValueError(f"--compile: unknown mode {compile_mode!r}; expected one of {COMPILE_MODES}")
     dev = resolve_device(device, "--device")
     learners = list(learners or LEARNERS)
     sizes = list(sizes or SIZES)
@@ -414,7 +443,8 @@ def run(
                 with torch.random.fork_rng(devices=[]):
                     torch.manual_seed(seed)
                     case = BUILDERS[name](size, gen, dev)
-                    results.append({"learner": name, "size": size, **measure(case, seconds, peak)})
+                    mode = "off" if case.learner.double_backward else compile_mode
+                    results.append({"learner": name, "size": size, **measure(case, seconds, peak, mode)})
         used = torch.get_num_threads()
     finally:
         torch.set_num_threads(previous)
@@ -426,6 +456,7 @@ def run(
         "machine_peak_gflops_per_s": peak,
         "threads": used,
         "seconds_per_measurement": seconds,
+        "compile": compile_mode,
         "wall_s": time.perf_counter() - wall0,
         "results": results,
     }
@@ -435,7 +466,7 @@ def format_table(r: dict[str, Any]) -> str:
     lines = [
         f"learner benchmark on {r['device']}: {r['threads']} torch thread(s), about "
         f"{r['seconds_per_measurement']:g} s per measurement, {r['wall_s']:.0f} s in all; machine peak "
-        f"{r['machine_peak_gflops_per_s']:.0f} GFLOP/s (one large float32 GEMM)",
+        f"{r['machine_peak_gflops_per_s']:.0f} GFLOP/s (one large float32 GEMM); losses compiled: {r['compile']}",
         f"{'learner':<14}{'size':<7}{'updates/s':>10}{'reps':>6}{'GFLOP/upd':>11}{'GFLOP/s':>9}"
         f"{'mm peak GFLOP/s':>17}{'share':>7}{'of machine':>11}  sizes",
     ]
@@ -445,6 +476,7 @@ def format_table(r: dict[str, Any]) -> str:
             f"{x['gflop_per_update']:>11.3f}{x['achieved_gflops_per_s']:>9.1f}"
             f"{x['matmul_peak_gflops_per_s']:>17.1f}{x['share_of_peak']:>7.2f}{x['share_of_machine_peak']:>11.3f}"
             f"  {x['description']}"
+            + (f"; compiled ({x['compiled']}) in {x['compile_s']:.0f} s" if x["compiled"] else "")
         )
     lines.append(
         "GFLOP/upd: matmul FLOPs of one update, forward and backward (torch.utils.flop_counter's formulas); "
