@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 from orchestrator.provenance import CODE_VERSIONS
 from orchestrator.tracking.uri import tracking_uri_error
 from workers.body.character import file_problem
+from workers.learners.base import COMPILE_MODES as LEARNER_COMPILE
 from workers.learners.base import DEVICES as LEARNER_DEVICES
 from workers.learners.discriminator import DiscriminatorConfig
 from workers.learners.ppo import PPOConfig
@@ -306,10 +307,16 @@ class RuntimeConfig:
     # runtime.learner_gpus reserved for its actor; locally, the machine's first) | auto (cuda whenever the
     # learner's process sees a GPU, else cpu). Weights reach the rollout workers as CPU tensors either way.
     learner_device: str = "auto"
+    # The learners' losses through torch.compile: eager | default | reduce-overhead (CUDA graphs, for a GPU).
+    # The first update of each compiles (minutes on a laptop's cores, cached on disk for the next run; see
+    # README, "Learners compiled"); the AMP discriminator's gradient penalty stays eager.
+    learner_compile: str = "eager"
 
     def __post_init__(self) -> None:
         if self.learner_device not in LEARNER_DEVICES:
             raise ConfigError(f"runtime.learner_device must be one of {LEARNER_DEVICES}, got {self.learner_device!r}")
+        if self.learner_compile not in LEARNER_COMPILE:
+            raise ConfigError(f"runtime.learner_compile must be one of {LEARNER_COMPILE}, got {self.learner_compile!r}")
         if self.learner_gpus < 0:
             raise ConfigError(f"runtime.learner_gpus must be non-negative, got {self.learner_gpus}")
         if self.rollout_workers < 1:

@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from orchestrator.components.base import LearnerActor, learner_device
+from orchestrator.components.base import LearnerActor, compiled, learner_device
 from orchestrator.schema import Config
 from orchestrator.world import load_character_and_library, seed_of
 from workers.body.character import Character
@@ -45,7 +45,9 @@ class DiscriminatorActor(LearnerActor):
         self.config = cfg.algo.discriminator
         self.weights = cfg.algo.amp
         self.data = reference_transitions(character, library)
-        self.learner = DiscriminatorLearner(amp_dim(character), self.config, seed_of(cfg, 6), learner_device(cfg))
+        self.learner = compiled(
+            DiscriminatorLearner(amp_dim(character), self.config, seed_of(cfg, 6), learner_device(cfg)), cfg
+        )
         self.rng = np.random.default_rng(seed_of(cfg, 7))
         self.last_rewards: dict[str, float] = {}
 

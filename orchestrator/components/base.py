@@ -10,6 +10,7 @@ methods); `rollout` and `replay` serve every method.
 
 from __future__ import annotations
 
+import logging
 import os
 import time
 from typing import Any
@@ -17,6 +18,8 @@ from typing import Any
 import numpy as np
 
 from workers.learners.base import Learner, Weights, resolve_device
+
+log = logging.getLogger(__name__)
 
 
 def mean_metrics(metrics: list[dict[str, float]]) -> dict[str, float]:
@@ -37,6 +40,22 @@ def learner_device(cfg: Any) -> Any:
     """The torch device this process's learner computes on (`runtime.learner_device`, resolved here: a Ray
     actor sees the GPUs Ray assigned it)."""
     return resolve_device(cfg.runtime.learner_device)
+
+
+def compiled(learner: Learner, cfg: Any) -> Learner:
+    """The learner with its loss through `torch.compile` as `runtime.learner_compile` says (eager: as it is;
+    default; reduce-overhead: CUDA graphs on a GPU). A loss that takes a gradient of a gradient (the AMP
+    discriminator's penalty) stays eager, which the log says once per actor."""
+    mode = cfg.runtime.learner_compile
+    if mode == "eager":
+        return learner
+    if learner.double_backward:
+        log.info(
+            "%s: its loss stays eager (runtime.learner_compile=%s cannot take its gradient penalty)", learner.name, mode
+        )
+        return learner
+    learner.compile(None if mode == "default" else mode)
+    return learner
 
 
 class LearnerActor:

@@ -6,7 +6,7 @@ from typing import Any
 
 import torch
 
-from orchestrator.components.base import LearnerActor, learner_device
+from orchestrator.components.base import LearnerActor, compiled, learner_device
 from orchestrator.schema import Config
 from orchestrator.world import load_character_and_library, seed_of
 from workers.learners.base import Weights
@@ -22,7 +22,9 @@ class WorldModelActor(LearnerActor):
         torch.set_num_threads(cfg.runtime.torch_threads)
         torch.manual_seed(seed_of(cfg, 2))
         dt = 1.0 / cfg.character.control_hz
-        self.learner = WorldModelLearner(num_bodies, action_dim, dt, cfg.algo.world_model, learner_device(cfg))
+        self.learner = compiled(
+            WorldModelLearner(num_bodies, action_dim, dt, cfg.algo.world_model, learner_device(cfg)), cfg
+        )
 
     def train(self, batches: list[WindowBatch]) -> dict[str, Any]:
         return self.report([self.learner.update(WorldModelBatch(b.states, b.actions)) for b in batches])
@@ -38,8 +40,8 @@ class VAEActor(LearnerActor):
         _, self.library = load_character_and_library(cfg)
         wm = cfg.algo.world_model
         world_model = build_world_model(num_bodies, action_dim, wm, 1.0 / cfg.character.control_hz)
-        self.learner = VAELearner(
-            num_bodies, action_dim, cfg.algo.vae, world_model, seed_of(cfg, 4), learner_device(cfg)
+        self.learner = compiled(
+            VAELearner(num_bodies, action_dim, cfg.algo.vae, world_model, seed_of(cfg, 4), learner_device(cfg)), cfg
         )
         self.world_model_version = -1
 

@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from orchestrator.components.base import LearnerActor, learner_device
+from orchestrator.components.base import LearnerActor, compiled, learner_device
 from orchestrator.schema import Config
 from orchestrator.upstream import Upstream, layer_state, load_demos
 from orchestrator.world import seed_of
@@ -89,8 +89,8 @@ class SimulationLayerActor(OfflineActor):
         self.window = cfg.algo.world_model.rollout_steps
         super().__init__(cfg, demos, 2)
         wm = cfg.algo.world_model
-        self.learner = WorldModelLearner(
-            num_bodies, action_dim, 1.0 / cfg.character.control_hz, wm, learner_device(cfg)
+        self.learner = compiled(
+            WorldModelLearner(num_bodies, action_dim, 1.0 / cfg.character.control_hz, wm, learner_device(cfg)), cfg
         )
         self.base_lr = wm.lr
 
@@ -135,8 +135,9 @@ class PhysicsVAEActor(OfflineActor):
         layer_config, layer_weights = layer if isinstance(layer, tuple) else (layer.config().algo.world_model, layer)
         self.world_model = build_world_model(num_bodies, action_dim, layer_config, 1.0 / cfg.character.control_hz)
         self.world_model.load_state_dict(layer_weights if isinstance(layer_weights, dict) else layer_state(layer))
-        self.learner = VAELearner(
-            num_bodies, action_dim, cfg.algo.vae, self.world_model, seed_of(cfg, 4), learner_device(cfg)
+        self.learner = compiled(
+            VAELearner(num_bodies, action_dim, cfg.algo.vae, self.world_model, seed_of(cfg, 4), learner_device(cfg)),
+            cfg,
         )
         self.base_lr = cfg.algo.vae.lr
 

@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from orchestrator.components.base import LearnerActor, learner_device
+from orchestrator.components.base import LearnerActor, compiled, learner_device
 from orchestrator.schema import Config
 from orchestrator.world import seed_of
 from workers.learners.ppo import PPOLearner, Rollout
@@ -55,7 +55,7 @@ class PPOActor(LearnerActor):
         super().__init__()
         torch.set_num_threads(cfg.runtime.torch_threads)
         ppo = replace(cfg.algo.ppo, seed=seed_of(cfg, 5))
-        self.learner = PPOLearner(obs_dim, act_dim, ppo, learner_device(cfg), helper)
+        self.learner = compiled(PPOLearner(obs_dim, act_dim, ppo, learner_device(cfg), helper), cfg)
         self.running_return: np.ndarray | None = None  # per environment, across calls
         self.running_length: np.ndarray | None = None
 

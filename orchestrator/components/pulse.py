@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from orchestrator.components.base import LearnerActor, learner_device
+from orchestrator.components.base import LearnerActor, compiled, learner_device
 from orchestrator.schema import Config
 from orchestrator.upstream import Upstream, expert_weights
 from orchestrator.world import load_character_and_library, seed_of
@@ -33,8 +33,8 @@ class PulseActor(LearnerActor):
         t = expert_weights(expert).state  # downloaded here: a restarted actor needs nothing from the driver
         self.teacher = expert_module(t, num_bodies, action_dim)
         self.residual, self.observation = bool(t["residual"]), str(t["observation"])
-        self.learner = VAELearner(
-            num_bodies, action_dim, cfg.algo.vae, seed=seed_of(cfg, 4), device=learner_device(cfg)
+        self.learner = compiled(
+            VAELearner(num_bodies, action_dim, cfg.algo.vae, seed=seed_of(cfg, 4), device=learner_device(cfg)), cfg
         )
 
     def labels(self, states: np.ndarray, clip_id: np.ndarray, frame: np.ndarray) -> np.ndarray:

@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from orchestrator.components.base import LearnerActor, learner_device
+from orchestrator.components.base import LearnerActor, compiled, learner_device
 from orchestrator.schema import Config
 from orchestrator.upstream import StageError, Upstream, existing_run, layer_state
 from orchestrator.world import seed_of
@@ -82,7 +82,9 @@ class TaskActor(LearnerActor):
         wm = build_world_model(num_bodies, action_dim, wm_cfg, 1.0 / cfg.character.control_hz)
         wm.load_state_dict(wm_state)
         task = cfg.algo.task
-        self.learner = TaskLearner(controller, wm, action_dim, task, payload["prior_action"], learner_device(cfg))
+        self.learner = compiled(
+            TaskLearner(controller, wm, action_dim, task, payload["prior_action"], learner_device(cfg)), cfg
+        )
         self.buffer = GoalBuffer(task.buffer_size)
         self.rng = np.random.default_rng(seed_of(cfg, 6))
         self.steps = task.rollout_steps

@@ -119,3 +119,19 @@ def test_compiled_controlvae_matches_eager_with_the_same_draws() -> None:
     assert results[1][1] == pytest.approx(results[0][1], rel=1e-5)
     for g_eager, g_compiled in zip(results[0][2], results[1][2], strict=True):
         torch.testing.assert_close(g_compiled, g_eager, rtol=1e-4, atol=1e-6)
+
+
+def test_runtime_learner_compile_compiles_every_learner_but_the_discriminator() -> None:
+    from types import SimpleNamespace
+
+    from orchestrator.components.base import compiled
+
+    def cfg(mode: str) -> SimpleNamespace:
+        return SimpleNamespace(runtime=SimpleNamespace(learner_compile=mode))
+
+    eager = compiled(_learner(), cfg("eager"))
+    assert eager.loss.__func__ is WorldModelLearner.loss  # the bound method, untouched
+    world_model = compiled(_learner(), cfg("default"))
+    assert getattr(world_model.loss, "__func__", None) is not WorldModelLearner.loss  # through torch.compile
+    disc = compiled(DiscriminatorLearner(105), cfg("reduce-overhead"))  # refuses compile(); stays eager here
+    assert disc.loss.__func__ is DiscriminatorLearner.loss

@@ -34,6 +34,7 @@ class DeviceError(RuntimeError):
 
 
 DEVICES = ("auto", "cpu", "cuda")
+COMPILE_MODES = ("eager", "default", "reduce-overhead")  # runtime.learner_compile: `Learner.compile`'s modes
 
 
 def resolve_device(setting: str, key: str = "runtime.learner_device") -> torch.device:
