@@ -333,11 +333,16 @@ COMPILE_MODES = ("off", "default", "reduce-overhead")
 
 
 def measure(
-    case: Case, seconds: float, machine_gflops: float = float("nan"), compile_mode: str = "off"
+    case: Case,
+    seconds: float,
+    machine_gflops: float = float("nan"),
+    compile_mode: str = "off",
+    eager: Case | None = None,
 ) -> dict[str, Any]:
     """FLOPs, updates/s, achieved and peak matmul rates of one learner at one size. With `compile_mode` other
     than "off" the FLOPs are counted on an eager update, then the loss is compiled (`Learner.compile`), the
-    first compiled update timed as `compile_s`, and the compiled updates timed."""
+    first compiled update timed as `compile_s`, and the compiled updates timed; given `eager`, the same learner
+    and batch left eager, its updates are timed in the same rounds, alternating with the compiled ones."""
     learner, batch = case.learner, case.batch
     device = learner.device
     recorder = MatmulRecorder()
@@ -361,17 +366,23 @@ def measure(
     ):  # one more warm-up round when it is cheap
         learner.update(batch)
         replay.run()
+    if eager is not None:
+        eager.learner.update(eager.batch)
     updates: list[float] = []
     passes: list[float] = []
-    end = time.perf_counter() + seconds
+    eager_updates: list[float] = []
+    end = time.perf_counter() + seconds * (1 if eager is None else 2)
     while len(updates) < MIN_REPEATS or (time.perf_counter() < end and len(updates) < MAX_REPEATS):
-        _sync(device)
-        t0 = time.perf_counter()
-        learner.update(batch)
-        _sync(device)
-        updates.append(time.perf_counter() - t0)
+        sides = [(learner, batch, updates)] + ([] if eager is None else [(eager.learner, eager.batch, eager_updates)])
+        for one, its_batch, times in sides if len(updates) % 2 else sides[::-1]:  # alternating which goes first
+            _sync(device)
+            t0 = time.perf_counter()
+            one.update(its_batch)
+            _sync(device)
+            times.append(time.perf_counter() - t0)
         passes.append(replay.run())
     median, matmul_s = statistics.median(updates), statistics.median(passes)
+    eager_rate = 1.0 / statistics.median(eager_updates) if eager_updates else float("nan")
     achieved = flops / median
     peak = flops / matmul_s if matmul_s > 0 else float("nan")
     return {
@@ -391,6 +402,8 @@ def measure(
         "recorded_update_s": first,
         "compiled": None if compile_mode == "off" else compile_mode,
         "compile_s": compile_s,
+        "eager_updates_per_s": eager_rate,  # the eager twin's, in the same rounds (compiled runs only)
+        "compiled_over_eager": eager_rate and (1.0 / median) / eager_rate,
         "matmul_calls_per_update": len(recorder.order),
         "distinct_matmuls": len(recorder.calls),
         "top_matmuls": replay.top(5),
@@ -444,7 +457,13 @@ def run(
                     torch.manual_seed(seed)
                     case = BUILDERS[name](size, gen, dev)
                     mode = "off" if case.learner.double_backward else compile_mode
-                    results.append({"learner": name, "size": size, **measure(case, seconds, peak, mode)})
+                twin = None
+                if mode != "off":  # the same learner and batch, left eager, timed in the same rounds
+                    with torch.random.fork_rng(devices=[]):
+                        torch.manual_seed(seed)
+                        twin = BUILDERS[name](size, torch.Generator().manual_seed(seed), dev)
+                with torch.random.fork_rng(devices=[]):
+                    results.append({"learner": name, "size": size, **measure(case, seconds, peak, mode, twin)})
         used = torch.get_num_threads()
     finally:
         torch.set_num_threads(previous)
@@ -475,8 +494,7 @@ def format_table(r: dict[str, Any]) -> str:
             f"{x['learner']:<14}{x['size']:<7}{x['updates_per_s']:>10.2f}{x['repeats']:>6}"
             f"{x['gflop_per_update']:>11.3f}{x['achieved_gflops_per_s']:>9.1f}"
             f"{x['matmul_peak_gflops_per_s']:>17.1f}{x['share_of_peak']:>7.2f}{x['share_of_machine_peak']:>11.3f}"
-            f"  {x['description']}"
-            + (f"; compiled ({x['compiled']}) in {x['compile_s']:.0f} s" if x["compiled"] else "")
+            f"  {x['description']}" + (_compiled_note(x) if x["compiled"] else "")
         )
     lines.append(
         "GFLOP/upd: matmul FLOPs of one update, forward and backward (torch.utils.flop_counter's formulas); "
@@ -484,3 +502,10 @@ def format_table(r: dict[str, Any]) -> str:
         "peak; reps: timed rounds (medians)."
     )
     return "\n".join(lines)
+
+
+def _compiled_note(x: dict[str, Any]) -> str:
+    return (
+        f"; compiled ({x['compiled']}) in {x['compile_s']:.0f} s, {x['compiled_over_eager']:.2f}x eager "
+        f"({x['eager_updates_per_s']:.2f}/s in the same rounds)"
+    )

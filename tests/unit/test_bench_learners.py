@@ -50,3 +50,14 @@ def test_parse_names():
     assert bench.parse_names("disc, vae,disc", bench.LEARNERS, "learner") == ["discriminator", "vae"]
     with pytest.raises(ValueError, match="unknown size"):
         bench.parse_names("huge", bench.SIZES, "size")
+
+
+@pytest.mark.slow  # compiles PPO's loss (seconds)
+def test_compiled_rows_time_an_eager_twin_in_the_same_rounds():
+    r = bench.run(["ppo", "discriminator"], ["small"], seconds=0.2, threads=1, compile_mode="default")
+    ppo, disc = r["results"]
+    assert r["compile"] == "default" and ppo["compiled"] == "default" and ppo["compile_s"] > 0
+    assert ppo["eager_updates_per_s"] > 0
+    assert ppo["compiled_over_eager"] == pytest.approx(ppo["updates_per_s"] / ppo["eager_updates_per_s"])
+    assert disc["compiled"] is None  # its gradient penalty stays eager
+    assert "x eager" in bench.format_table(r).splitlines()[2]
