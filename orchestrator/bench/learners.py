@@ -29,10 +29,11 @@ random actions and observations; timing does not depend on the values), then:
   on the same device and threads; share of machine = achieved / that, how far
   the update is from what the device can do at its best.
 
-`compile_mode` ("off", "default" or "reduce-overhead", `--compile`): with a mode, each
-learner's loss runs through `torch.compile` (`Learner.compile`) after the FLOPs are counted on
-an eager update; the first compiled update's time is reported as `compile_s`. The
-discriminator's loss (a gradient penalty: a gradient of a gradient) stays eager.
+`compile_mode` ("off", "default" or "reduce-overhead", `--compile`): with a mode, each learner's
+loss runs through `torch.compile` (`Learner.compile`) after the FLOPs are counted on an eager update;
+the first compiled update's time is `compile_s`, and an eager twin (same learner and batch) is timed
+in the same rounds for `compiled_over_eager`. The discriminator's loss (a gradient of a gradient)
+stays eager.
 
 `device` ("cpu" or "cuda") is where the learners compute (`runtime.learner_device`):
 batches start on the CPU, as a replay buffer hands them over, and each update copies
