@@ -9,9 +9,10 @@ TORCH ?= torch==2.13.0
 
 # Debian packages the project uses beside Python: PostgreSQL's server (MLflow's backend store in
 # `make cluster-up`) and the GL libraries of MuJoCo's offscreen renderer (evaluation videos:
-# MUJOCO_GL=egl or osmesa), and docker-compose to check docker/compose.yaml (no daemon needed).
+# MUJOCO_GL=egl or osmesa), docker-compose to check docker/compose.yaml (no daemon needed), and a C++
+# compiler for torch.compile's CPU kernels (runtime.learner_compile, bench learners --compile).
 # Needs root; elsewhere it prints the command to run.
-SYSTEM_PACKAGES := postgresql libosmesa6 libegl1 libgl1 libgles2 docker-compose
+SYSTEM_PACKAGES := postgresql libosmesa6 libegl1 libgl1 libgles2 docker-compose g++
 system-packages:
 	@if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
 		apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends $(SYSTEM_PACKAGES); \
