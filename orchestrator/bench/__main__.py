@@ -40,7 +40,10 @@ def main(argv: list[str] | None = None) -> int:
         "--compile",
         default="reduce-overhead",
         choices=("off", "default", "reduce-overhead"),
-        help="on the GPU, the small learners again with their losses compiled in this mode",
+        help="on the GPU, the learners again with their losses compiled in this mode",
+    )
+    device.add_argument(
+        "--compile-sizes", default="small", help="comma-separated sizes compiled on the GPU (paper takes minutes)"
     )
     pipeline = sub.add_parser("pipeline", help="end-to-end samples/s and updates/s, local against Ray")
     pipeline.add_argument("--algos", default="controlvae,amp,tracker", help="comma-separated methods (conf/algo/)")
@@ -140,9 +143,19 @@ def main(argv: list[str] | None = None) -> int:
         devices = [d for d in args.devices.split(",") if d]
         if not devices or not set(devices) <= {"cpu", "cuda"}:
             parser.error(f"--devices: expected cuda and/or cpu, got {args.devices}")
+        learners = bench_device.bench_learners
+        try:
+            compile_sizes = tuple(learners.parse_names(args.compile_sizes, learners.SIZES, "size"))
+        except ValueError as e:
+            parser.error(f"--compile-sizes: {e}")
         try:
             result = bench_device.run(
-                devices, args.seconds, args.threads, lambda m: print(m, file=sys.stderr), args.compile
+                devices,
+                args.seconds,
+                args.threads,
+                lambda m: print(m, file=sys.stderr),
+                args.compile,
+                compile_sizes,
             )
         except DeviceError as e:
             parser.exit(2, f"error: {e}\n")

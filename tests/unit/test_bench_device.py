@@ -35,6 +35,16 @@ def test_no_gpu_is_one_line():
     assert "Traceback" not in out.stderr
 
 
+def test_an_unknown_compile_size_is_one_line():
+    out = subprocess.run(
+        [sys.executable, "-m", "orchestrator.bench", "device", "--compile-sizes", "huge"],
+        cwd=ROOT, capture_output=True, text=True,
+    )  # fmt: skip
+    assert out.returncode == 2
+    last = out.stderr.strip().splitlines()[-1]
+    assert last.endswith("--compile-sizes: unknown size huge; expected some of paper, small")
+
+
 def test_a_paper_iteration_times_eight_updates_of_each_learner(monkeypatch):
     from orchestrator.bench import device, learners
 
