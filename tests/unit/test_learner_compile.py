@@ -135,3 +135,21 @@ def test_runtime_learner_compile_compiles_every_learner_but_the_discriminator() 
     assert getattr(world_model.loss, "__func__", None) is not WorldModelLearner.loss  # through torch.compile
     disc = compiled(DiscriminatorLearner(105), cfg("reduce-overhead"))  # refuses compile(); stays eager here
     assert disc.loss.__func__ is DiscriminatorLearner.loss
+
+
+@pytest.mark.slow  # compiles
+@pytest.mark.parametrize(("objective", "prior"), [("physicsvae", "standard_normal"), ("pulse", "learned")])
+def test_the_other_vae_objectives_compile_to_the_same_updates(objective: str, prior: str) -> None:
+    states = _batch(n=8, t=3).states
+    batch = VAEBatch(states, states.clone(), torch.randn(8, 3, ACTION_DIM, generator=torch.Generator().manual_seed(2)))
+    losses = []
+    for compile_it in (False, True):
+        torch.manual_seed(0)
+        config = VAEConfig(
+            objective=objective, prior=prior, latent_dim=4, encoder_hidden=(16,), num_experts=2, policy_hidden=(16,)
+        )
+        vae = VAELearner(NUM_BODIES, ACTION_DIM, config, world_model=WorldModel(NUM_BODIES, ACTION_DIM, (16,)))
+        if compile_it:
+            vae.compile()
+        losses.append([vae.update(batch)["loss"] for _ in range(3)])
+    assert losses[1] == pytest.approx(losses[0], rel=1e-5)
