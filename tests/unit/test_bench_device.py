@@ -24,25 +24,23 @@ def test_the_device_check_imports_only_torch_numpy_and_mujoco():
     assert out.stdout.strip() == ""
 
 
+def _refused(*args: str) -> str:
+    """`bench device ARGS`, which must exit 2 with no traceback: its last line on stderr."""
+    out = subprocess.run(
+        [sys.executable, "-m", "orchestrator.bench", "device", *args], cwd=ROOT, capture_output=True, text=True
+    )
+    assert out.returncode == 2 and "Traceback" not in out.stderr
+    return out.stderr.strip().splitlines()[-1]
+
+
 @pytest.mark.skipif(torch.cuda.is_available(), reason="this machine has a GPU")
 def test_no_gpu_is_one_line():
-    out = subprocess.run(
-        [sys.executable, "-m", "orchestrator.bench", "device", "--devices", "cuda"],
-        cwd=ROOT, capture_output=True, text=True,
-    )  # fmt: skip
-    assert out.returncode == 2
-    assert out.stderr.strip().splitlines()[-1].startswith("error: --devices=cuda: this process sees no GPU")
-    assert "Traceback" not in out.stderr
+    assert _refused("--devices", "cuda").startswith("error: --devices=cuda: this process sees no GPU")
 
 
 def test_an_unknown_compile_size_is_one_line():
-    out = subprocess.run(
-        [sys.executable, "-m", "orchestrator.bench", "device", "--compile-sizes", "huge"],
-        cwd=ROOT, capture_output=True, text=True,
-    )  # fmt: skip
-    assert out.returncode == 2
-    last = out.stderr.strip().splitlines()[-1]
-    assert last.endswith("--compile-sizes: unknown size huge; expected some of paper, small")
+    line = _refused("--compile-sizes", "huge")
+    assert line.endswith("--compile-sizes: unknown size huge; expected some of paper, small")
 
 
 def test_a_paper_iteration_times_eight_updates_of_each_learner(monkeypatch):
