@@ -422,6 +422,12 @@ def parse_names(text: str | None, allowed: tuple[str, ...], what: str) -> list[s
     return list(dict.fromkeys(names))
 
 
+def _build(name: str, size: str, seed: int, device: torch.device) -> Case:
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(seed)
+        return BUILDERS[name](size, torch.Generator().manual_seed(seed), device)
+
+
 def run(
     learners: list[str] | None = None,
     sizes: list[str] | None = None,
@@ -453,16 +459,9 @@ def run(
             for size in sizes:
                 if progress:
                     progress(f"{name} ({size}) ...")
-                gen = torch.Generator().manual_seed(seed)
-                with torch.random.fork_rng(devices=[]):
-                    torch.manual_seed(seed)
-                    case = BUILDERS[name](size, gen, dev)
-                    mode = "off" if case.learner.double_backward else compile_mode
-                twin = None
-                if mode != "off":  # the same learner and batch, left eager, timed in the same rounds
-                    with torch.random.fork_rng(devices=[]):
-                        torch.manual_seed(seed)
-                        twin = BUILDERS[name](size, torch.Generator().manual_seed(seed), dev)
+                case = _build(name, size, seed, dev)
+                mode = "off" if case.learner.double_backward else compile_mode
+                twin = _build(name, size, seed, dev) if mode != "off" else None  # left eager, same rounds
                 with torch.random.fork_rng(devices=[]):
                     results.append({"learner": name, "size": size, **measure(case, seconds, peak, mode, twin)})
         used = torch.get_num_threads()
