@@ -31,6 +31,7 @@ from typing import Any
 import torch
 
 from orchestrator.bench import learners as bench_learners
+from orchestrator.bench.matmuls import sync
 
 ITERATION_UPDATES = {"world_model": 8, "vae": 8}  # ControlVAE's epoch at scale=paper (see the docstring)
 
@@ -44,11 +45,11 @@ def paper_iteration(device: torch.device, seed: int = 0) -> dict[str, Any]:
             torch.manual_seed(seed)
             case = bench_learners.BUILDERS[name]("paper", gen, device)
             case.learner.update(case.batch)  # warm-up (allocator, cuBLAS, thread pool)
-            bench_learners._sync(device)
+            sync(device)
             t0 = time.perf_counter()
             for _ in range(count):
                 case.learner.update(case.batch)
-            bench_learners._sync(device)
+            sync(device)
             out[f"{name}_s"] = time.perf_counter() - t0
     out["iteration_s"] = sum(out[f"{n}_s"] for n in ITERATION_UPDATES)
     return out

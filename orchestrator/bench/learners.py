@@ -67,10 +67,8 @@ from dataclasses import dataclass, fields
 from typing import Any
 
 import torch
-from torch.utils._python_dispatch import TorchDispatchMode
-from torch.utils._pytree import tree_map
-from torch.utils.flop_counter import flop_registry
 
+from orchestrator.bench.matmuls import CPU, MatmulRecorder, MatmulReplay, machine_peak, sync
 from workers.learners.base import Learner, resolve_device
 from workers.learners.discriminator import DiscriminatorBatch, DiscriminatorConfig, DiscriminatorLearner
 from workers.learners.ppo import PPOBatch, PPOConfig, PPOLearner
@@ -84,30 +82,7 @@ LEARNERS = ("world_model", "vae", "discriminator", "ppo", "task")
 SIZES = ("paper", "small")
 ALIASES = {"disc": "discriminator", "wm": "world_model"}
 MIN_REPEATS = 3
-CPU = torch.device("cpu")
 MAX_REPEATS = 200
-
-
-def _sync(device: torch.device) -> None:
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
-
-
-def machine_peak(device: torch.device, seconds: float = 1.0) -> float:
-    """Dense float32 matmul GFLOP/s of this device and thread count: one large square GEMM, median of repeats."""
-    n = 4096 if device.type == "cuda" else 2048
-    gen = torch.Generator().manual_seed(0)
-    a, b = torch.randn(n, n, generator=gen).to(device), torch.randn(n, n, generator=gen).to(device)
-    a @ b  # warm up (cuBLAS handles, thread pool)
-    _sync(device)
-    times: list[float] = []
-    end = time.perf_counter() + seconds
-    while len(times) < 3 or time.perf_counter() < end:
-        t0 = time.perf_counter()
-        a @ b
-        _sync(device)
-        times.append(time.perf_counter() - t0)
-    return 2 * n**3 / statistics.median(times) / 1e9
 
 
 @dataclass
@@ -234,101 +209,6 @@ def _dims(hidden: tuple[int, ...]) -> str:
     return f"{len(hidden)}x{hidden[0]}" if len(set(hidden)) == 1 else "(" + ", ".join(map(str, hidden)) + ")"
 
 
-# Recording the matmuls of one update ------------------------------------------------
-@dataclass(frozen=True)
-class TensorSpec:
-    shape: tuple[int, ...]
-    stride: tuple[int, ...]
-    dtype: torch.dtype
-    device: torch.device = CPU
-
-    def make(self, gen: torch.Generator) -> torch.Tensor:
-        """A tensor with this shape and these strides (views, transposes and broadcasts kept) over random values."""
-        size = 1 + sum((n - 1) * s for n, s in zip(self.shape, self.stride, strict=True)) if all(self.shape) else 0
-        flat = torch.randn(size, generator=gen).to(self.dtype).to(self.device)
-        return flat.as_strided(self.shape, self.stride)
-
-
-def _spec(x: Any) -> Any:
-    if isinstance(x, torch.Tensor):
-        return TensorSpec(tuple(x.shape), tuple(x.stride()), x.dtype, x.device)
-    return x
-
-
-class MatmulRecorder(TorchDispatchMode):
-    """Counts each distinct call of a FLOP-counted operator by (operator, argument shapes and strides)."""
-
-    def __init__(self) -> None:
-        super().__init__()
-        self.calls: dict[str, list[Any]] = {}  # key -> [op, args spec, kwargs spec, count, FLOPs of one call]
-        self.order: list[str] = []  # the keys in the order the update called them
-
-    @property
-    def flops(self) -> int:
-        return sum(count * flops for *_, count, flops in self.calls.values())
-
-    def __torch_dispatch__(self, func: Any, types: Any, args: tuple = (), kwargs: dict | None = None) -> Any:
-        kwargs = kwargs or {}
-        out = func(*args, **kwargs)
-        count_flops = flop_registry.get(func.overloadpacket)
-        if count_flops is not None:
-            a, k = tree_map(_spec, args), tree_map(_spec, kwargs)
-            key = f"{func}{a}{k}"
-            entry = self.calls.setdefault(key, [func, a, k, 0, 0])
-            self.order.append(key)
-            entry[3] += 1
-            entry[4] = count_flops(*args, **kwargs, out_val=out)
-        return out
-
-
-def _label(op: Any, args: Any) -> str:
-    shapes = ["x".join(map(str, a.shape)) for a in args if isinstance(a, TensorSpec)]
-    return f"{op.overloadpacket.__name__} " + " @ ".join(shapes[-2:]) if shapes else str(op)
-
-
-class MatmulReplay:
-    """The recorded matmuls of one update, replayed alone and in order on operands made once."""
-
-    def __init__(self, recorder: MatmulRecorder, seed: int = 0, device: torch.device = CPU):
-        gen = torch.Generator().manual_seed(seed)
-        self.sync = (lambda: _sync(device)) if device.type == "cuda" else (lambda: None)
-
-        def make(x: Any) -> Any:
-            return x.make(gen) if isinstance(x, TensorSpec) else x
-
-        self.calls = {key: (op, tree_map(make, a), tree_map(make, k)) for key, (op, a, k, *_) in recorder.calls.items()}
-        self.info = recorder.calls
-        self.order = recorder.order
-        self.busy = dict.fromkeys(self.calls, 0.0)  # seconds per key, summed over passes
-        self.passes = 0
-        for op, args, kwargs in self.calls.values():  # touch every operand once
-            op(*args, **kwargs)
-
-    def run(self) -> float:
-        """One pass over the update's matmuls; the sum of the calls' times."""
-        calls, busy, clock, sync = self.calls, self.busy, time.perf_counter, self.sync
-        total = 0.0
-        for key in self.order:
-            op, args, kwargs = calls[key]
-            t0 = clock()
-            op(*args, **kwargs)
-            sync()
-            dt = clock() - t0
-            busy[key] += dt
-            total += dt
-        self.passes += 1
-        return total
-
-    def top(self, n: int) -> list[dict[str, Any]]:
-        """The n matmuls with the most FLOPs per update: calls, GFLOP and their mean rate in the replays."""
-        rows = []
-        for key, (op, a_spec, _, count, flops) in self.info.items():
-            seconds = self.busy[key] / max(self.passes, 1)
-            rate = count * flops / seconds / 1e9 if seconds > 0 else float("nan")
-            rows.append({"op": _label(op, a_spec), "calls": count, "gflop": count * flops / 1e9, "gflops_per_s": rate})
-        return sorted(rows, key=lambda r: -r["gflop"])[:n]
-
-
 # The measurement -------------------------------------------------------------------
 COMPILE_MODES = ("off", "default", "reduce-overhead")
 
@@ -350,7 +230,7 @@ def measure(
     t0 = time.perf_counter()
     with recorder:
         learner.update(batch)
-    _sync(device)
+    sync(device)
     first = time.perf_counter() - t0
     flops = recorder.flops
     replay = MatmulReplay(recorder, device=device)
@@ -359,7 +239,7 @@ def measure(
         learner.compile(None if compile_mode == "default" else compile_mode)
         t0 = time.perf_counter()
         learner.update(batch)
-        _sync(device)
+        sync(device)
         compile_s = time.perf_counter() - t0
         learner.update(batch)  # CUDA graphs are recorded on the calls after the first
     if (
@@ -376,10 +256,10 @@ def measure(
     while len(updates) < MIN_REPEATS or (time.perf_counter() < end and len(updates) < MAX_REPEATS):
         sides = [(learner, batch, updates)] + ([] if eager is None else [(eager.learner, eager.batch, eager_updates)])
         for one, its_batch, times in sides if len(updates) % 2 else sides[::-1]:  # alternating which goes first
-            _sync(device)
+            sync(device)
             t0 = time.perf_counter()
             one.update(its_batch)
-            _sync(device)
+            sync(device)
             times.append(time.perf_counter() - t0)
         passes.append(replay.run())
     median, matmul_s = statistics.median(updates), statistics.median(passes)

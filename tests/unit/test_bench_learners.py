@@ -9,6 +9,7 @@ import torch
 from torch.utils.flop_counter import FlopCounterMode
 
 from orchestrator.bench import learners as bench
+from orchestrator.bench import matmuls
 from orchestrator.bench.__main__ import main
 
 
@@ -39,7 +40,7 @@ def test_recorded_flops_match_flop_counter(name):
     case = bench.BUILDERS[name]("small", torch.Generator().manual_seed(0))
     with FlopCounterMode(display=False) as counter:
         case.learner.update(case.batch)
-    recorder = bench.MatmulRecorder()
+    recorder = matmuls.MatmulRecorder()
     with recorder:
         case.learner.update(case.batch)
     assert recorder.flops == counter.get_total_flops() > 0
