@@ -106,20 +106,8 @@ def format_report(r: dict[str, Any]) -> str:
         if compiled and "error" in compiled:
             lines.append(f"compiled learners on {dev}: failed ({compiled['error']})")
         elif compiled:
-            lines += ["", format_table_compiled(compiled)]
+            lines += ["", bench_learners.format_table(compiled)]  # each row: compiled / eager, same rounds
     if {"cpu", "cuda"} <= set(r["devices"]):
         cpu, gpu = (r["devices"][d]["paper_iteration"]["iteration_s"] for d in ("cpu", "cuda"))
         lines.append(f"paper-size iteration, CPU / GPU: {cpu:.2f} s / {gpu:.2f} s = {cpu / gpu:.1f}x")
-    return "\n".join(lines)
-
-
-def format_table_compiled(compiled: dict[str, Any]) -> str:
-    """The compiled run's table and, per learner, compiled / eager updates/s (timed in the same rounds)."""
-    lines = [bench_learners.format_table(compiled)]
-    for x in compiled["results"]:
-        if x["compiled"]:
-            lines.append(
-                f"{x['learner']} ({x['size']}): compiled / eager = {x['compiled_over_eager']:.2f}x "
-                f"after a {x['compile_s']:.0f} s compile"
-            )
     return "\n".join(lines)

@@ -106,7 +106,11 @@ def all_finite(tensors: Iterable[torch.Tensor]) -> bool:
     return all(bool(torch.isfinite(t).all()) for t in tensors if t.is_floating_point())
 
 
-_NUMPY_FLOATS = {np.dtype(np.float16), np.dtype(np.float32), np.dtype(np.float64)}
+def _floating(x: Any) -> bool:
+    """A floating-point tensor or NumPy array."""
+    if isinstance(x, torch.Tensor):
+        return x.is_floating_point()
+    return isinstance(x, np.ndarray) and x.dtype.kind == "f"
 
 
 def as_tensor(x: Any, dtype: torch.dtype = torch.float32, device: torch.device | str | None = None) -> torch.Tensor:
@@ -181,7 +185,7 @@ class Learner:
         moved = {}
         for field in dataclasses.fields(batch):
             x = getattr(batch, field.name)
-            if x.is_floating_point() if isinstance(x, torch.Tensor) else getattr(x, "dtype", None) in _NUMPY_FLOATS:
+            if _floating(x):
                 moved[field.name] = self.tensor(x)
         return dataclasses.replace(batch, **moved)
 
