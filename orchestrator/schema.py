@@ -12,6 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from orchestrator.provenance import CODE_VERSIONS
+from orchestrator.runtime.cores import PIN_MODES
 from orchestrator.tracking.uri import tracking_uri_error
 from workers.body.character import file_problem
 from workers.learners.base import COMPILE_MODES as LEARNER_COMPILE
@@ -311,10 +312,16 @@ class RuntimeConfig:
     # The first update of each compiles (minutes on a laptop's cores, cached on disk for the next run; see
     # README, "Learners compiled"); the AMP discriminator's gradient penalty stays eager.
     learner_compile: str = "eager"
+    # Ray started for the run only: auto gives each component the loop waits on (a method's
+    # `Component.own_core`, e.g. ControlVAE's VAE learner) a CPU core of its own and every other actor the
+    # cores left, when there are more cores than such components (Linux); shared leaves it to the scheduler.
+    pin_cores: str = "auto"
 
     def __post_init__(self) -> None:
         if self.learner_device not in LEARNER_DEVICES:
             raise ConfigError(f"runtime.learner_device must be one of {LEARNER_DEVICES}, got {self.learner_device!r}")
+        if self.pin_cores not in PIN_MODES:
+            raise ConfigError(f"runtime.pin_cores must be one of {PIN_MODES}, got {self.pin_cores!r}")
         if self.learner_compile not in LEARNER_COMPILE:
             raise ConfigError(f"runtime.learner_compile must be one of {LEARNER_COMPILE}, got {self.learner_compile!r}")
         if self.learner_gpus < 0:

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -29,6 +29,7 @@ from orchestrator import checkpoint
 from orchestrator.algos.base import Method, method_class
 from orchestrator.components.rollout import RolloutActor
 from orchestrator.runtime.base import Resources, Runtime, learner_gpus
+from orchestrator.runtime.cores import assign
 from orchestrator.schema import Config
 from orchestrator.tracking.base import RunLogger
 from orchestrator.tracking.model import deployable, log_policy
@@ -73,15 +74,21 @@ class Trainer:
         learners = sum(c.role != "replay" for c in components)
         learner_res = Resources(cpus=r.learner_cpus, gpus=learner_gpus(r, learners), max_restarts=r.max_restarts)
         replay_res = Resources(cpus=0.5, max_restarts=r.max_restarts)
-        res = [replay_res if c.role == "replay" else learner_res for c in components]
-        runtime.reserve(res + [worker_res] * num_workers)
+        workers = [f"rollout-{i}" for i in range(num_workers)]
+        own = [c.actor for c in components if c.own_core]
+        cores = assign(r, own, [c.actor for c in components if not c.own_core] + workers)
+        res = [
+            replace(replay_res if c.role == "replay" else learner_res, cores=cores.get(c.actor, ())) for c in components
+        ]
+        worker_res = [replace(worker_res, cores=cores.get(w, ())) for w in workers]
+        runtime.reserve(res + worker_res)
         self.handles: dict[str, Any] = {
             c.key: runtime.spawn(c.cls, *c.args, name=c.actor, resources=rc, **c.kwargs)
             for c, rc in zip(components, res, strict=True)
         }
         self.workers = [
-            runtime.spawn(RolloutActor, cfg, i, type(self.method), name=f"rollout-{i}", resources=worker_res)
-            for i in range(num_workers)
+            runtime.spawn(RolloutActor, cfg, i, type(self.method), name=w, resources=wr)
+            for i, (w, wr) in enumerate(zip(workers, worker_res, strict=True))
         ]
         self.worker_versions = [-1] * len(self.workers)
         # Settings the method gives every worker (`configure_workers`), and which of them each worker has.

@@ -90,6 +90,7 @@ class Component:
     args: tuple = ()
     actor: str = ""  # the Ray actor's name ("learner-world_model"); defaults to the key
     role: str = "learner"  # "learner" or "replay": which resources it gets
+    own_core: bool = False  # the loop waits on it: a core of its own under runtime.pin_cores=auto
     kwargs: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:

@@ -51,7 +51,8 @@ class ControlVAE(ReplayFed):
         return [
             Component("replay", ReplayActor, (cfg, b, a), role="replay"),
             Component("world_model", WorldModelActor, (cfg, b, a), actor="learner-world_model"),
-            Component("vae", VAEActor, (cfg, b, a), actor="learner-vae"),
+            # 8 updates an iteration to the world model's 4, each slower: the loop waits on this one
+            Component("vae", VAEActor, (cfg, b, a), actor="learner-vae", own_core=True),
         ]
 
     @classmethod

@@ -17,6 +17,7 @@ class Resources:
     cpus: float = 1.0
     gpus: float = 0.0
     max_restarts: int = 0
+    cores: tuple[int, ...] = ()  # the CPU cores the actor runs on (`orchestrator.runtime.cores`); () any
 
 
 class Runtime:

@@ -19,6 +19,7 @@ from ray.util.placement_group import placement_group, remove_placement_group
 from ray.util.scheduling_strategies import PlacementGroupSchedulingStrategy
 
 from orchestrator.runtime.base import Resources, Runtime
+from orchestrator.runtime.cores import pinned
 from orchestrator.schema import ConfigError
 
 log = logging.getLogger(__name__)
@@ -142,6 +143,8 @@ class RayRuntime(Runtime):
         if self.group is not None:
             options["scheduling_strategy"] = PlacementGroupSchedulingStrategy(self.group, self._next_bundle)
             self._next_bundle += 1
+        if res.cores:
+            cls = pinned(cls, res.cores)
         return ray.remote(cls).options(**options).remote(*args, **kwargs)
 
     def call(self, handle: Any, method: str, *args: Any, **kwargs: Any) -> Any:

@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import os
+
 import pytest
 
 from orchestrator.build import build_runtime
+from orchestrator.runtime.cores import available, plan
 from orchestrator.tracking.base import NoOpLogger
 from orchestrator.trainer import Trainer
 from orchestrator.world import load_character_and_library
@@ -29,8 +32,16 @@ def test_ray_run_matches_local_and_survives_a_killed_worker(smoke):
     tracker = Recorder()
     try:
         trainer = Trainer(cfg, rt, tracker, character)
-        for name in ("replay", "learner-world_model", "learner-vae", "rollout-0", "rollout-1"):
+        actors = ("replay", "learner-world_model", "learner-vae", "rollout-0", "rollout-1")
+        for name in actors:
             assert ray.get_actor(name, namespace=rt.namespace) is not None  # named in the dashboard
+        # runtime.pin_cores=auto: the VAE learner, which the loop waits on, has a core of its own where there
+        # is one to spare (2 here), and every other actor the rest
+        cores = plan(available(), ["learner-vae"], [a for a in actors if a != "learner-vae"])
+        for name in actors:
+            actor = ray.get_actor(name, namespace=rt.namespace)
+            seen = ray.get(actor.__ray_call__.remote(lambda _: sorted(os.sched_getaffinity(0))))
+            assert seen == list(cores.get(name, available())), name
         trainer.method.start(trainer)
         first = [trainer.step() for _ in range(3)]
         rt.kill(trainer.workers[0])

@@ -97,6 +97,7 @@ def test_ablation_gp_names_its_loss_and_penalty_placement():
         ("algo.vae.prior=gaussian", "algo.vae.prior: unknown prior type 'gaussian'"),
         ("runtime.rollout_workers=0", "runtime.rollout_workers must be at least 1"),
         ("runtime.learner_compile=off", "runtime.learner_compile must be one of"),
+        ("runtime.pin_cores=always", "runtime.pin_cores must be one of"),
         ("motion.clips=[humanoid3d_walk,humanoid3d_moonwalk]", r"motion.clips\[1\]: humanoid3d_moonwalk"),
         ("algo.loop.iterations=0", "algo.loop.iterations must be at least 1"),
         ("character.control_hz=7", "character.sim_hz"),
