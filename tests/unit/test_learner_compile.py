@@ -153,3 +153,38 @@ def test_the_other_vae_objectives_compile_to_the_same_updates(objective: str, pr
             vae.compile()
         losses.append([vae.update(batch)["loss"] for _ in range(3)])
     assert losses[1] == pytest.approx(losses[0], rel=1e-5)
+
+
+def test_a_compile_that_fails_leaves_the_learner_eager_with_the_same_draws(monkeypatch, caplog) -> None:
+    """Where torch.compile cannot build the loss (here: it raises, as it does on a machine without a C++
+    compiler), the first update runs the eager loss with the draws made for it, logs one line, and every
+    later update is eager too: the same updates as a learner never compiled."""
+    calls = []
+
+    def failing_compile(fn, **_):
+        def compiled(*args, **kwargs):
+            calls.append(1)
+            raise RuntimeError("InductorError: CppCompileError: no C++ compiler\nmore detail")
+
+        return compiled
+
+    states = _batch(n=8, t=3).states
+    batch = VAEBatch(states, states.clone())
+
+    def learner() -> VAELearner:
+        torch.manual_seed(0)
+        config = VAEConfig(latent_dim=4, encoder_hidden=(16,), num_experts=2, policy_hidden=(16,), gate_hidden=(8,))
+        return VAELearner(NUM_BODIES, ACTION_DIM, config, world_model=WorldModel(NUM_BODIES, ACTION_DIM, (16,)))
+
+    eager, fallen_back = learner(), learner()
+    monkeypatch.setattr(torch, "compile", failing_compile)
+    fallen_back.compile()
+    with caplog.at_level("WARNING", logger="workers.learners.base"):
+        runs = [[vae.update(batch)["loss"] for _ in range(3)] for vae in (eager, fallen_back)]
+    assert runs[1] == runs[0]  # the same draws, the same losses, update after update
+    assert len(calls) == 1  # compiled once, not again after it failed
+    (line,) = [r.getMessage() for r in caplog.records]
+    expected = "RuntimeError: InductorError: CppCompileError: no C++ compiler"  # the error's first line
+    assert line == f"vae: torch.compile failed, the loss stays eager: {expected}"
+    for p_eager, p_other in zip(eager.parameters(), fallen_back.parameters(), strict=True):
+        torch.testing.assert_close(p_other, p_eager, rtol=0, atol=0)

@@ -15,6 +15,7 @@ Safety:
 from __future__ import annotations
 
 import dataclasses
+import logging
 import math
 from collections.abc import Iterable
 from dataclasses import dataclass
@@ -23,6 +24,8 @@ from typing import Any
 import numpy as np
 import torch
 from torch import nn
+
+log = logging.getLogger(__name__)
 
 
 class NonFiniteWeightsError(RuntimeError):
@@ -163,13 +166,27 @@ class Learner:
         changes."""
         if self.double_backward:
             raise ValueError(f"{self.name}: its loss takes a gradient of a gradient, which torch.compile cannot")
-        compiled = torch.compile(self.loss, mode=mode, dynamic=False)
+        eager = self.loss
+        compiled = torch.compile(eager, mode=mode, dynamic=False)
+
+        def first(batch: Any) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+            # The first call compiles. Where that fails (no C++ compiler on the machine, an operator Inductor
+            # cannot lower) the learner goes on eager, the same loss, and the log says so once.
+            batch, inputs = self.on_device(batch), self.loss_inputs(batch)
+            try:
+                out = compiled(batch, **inputs)
+            except Exception as e:  # noqa: BLE001 (any failure to compile; the eager call below re-raises the loss's own)
+                log.warning("%s: torch.compile failed, the loss stays eager: %s", self.name, _first_line(e))
+                self.loss = lambda batch: eager(self.on_device(batch), **self.loss_inputs(batch))
+                return eager(batch, **inputs)
+            self.loss = loss
+            return out
 
         def loss(batch: Any) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
             # the copies to the device, the random draws and the schedules stay outside the graph
             return compiled(self.on_device(batch), **self.loss_inputs(batch))
 
-        self.loss = loss
+        self.loss = first
 
     def loss_inputs(self, batch: Any) -> dict[str, Any]:
         """What `loss(batch)` would read from the learner's changing state (its random draws, a weight on a
@@ -269,6 +286,11 @@ class Learner:
         self.version = int(state["version"])
         self.skipped_updates = int(state["skipped_updates"])
         self._published = None
+
+
+def _first_line(e: BaseException) -> str:
+    text = str(e).strip()
+    return f"{type(e).__name__}: {text.splitlines()[0] if text else ''}"
 
 
 def _to_cpu(x: Any) -> Any:
