@@ -19,7 +19,7 @@ from ray.util.placement_group import placement_group, remove_placement_group
 from ray.util.scheduling_strategies import PlacementGroupSchedulingStrategy
 
 from orchestrator.runtime.base import Resources, Runtime
-from orchestrator.runtime.cores import pinned
+from orchestrator.runtime.cores import pinned, release
 from orchestrator.schema import ConfigError
 
 log = logging.getLogger(__name__)
@@ -191,6 +191,7 @@ class RayRuntime(Runtime):
         return f"http://{url}" if url and not url.startswith("http") else url
 
     def shutdown(self) -> None:
+        release()  # the cores this run held for its own (runtime.pin_cores), for the next run
         if self.group is not None:
             remove_placement_group(self.group)
             self.group = None

@@ -8,6 +8,7 @@ from types import SimpleNamespace
 
 import pytest
 
+from orchestrator.runtime import cores
 from orchestrator.runtime.cores import assign, available, pin, pinned, plan
 
 linux_only = pytest.mark.skipif(not hasattr(os, "sched_setaffinity"), reason="CPU affinity is Linux's")
@@ -33,14 +34,55 @@ def runtime(**kw) -> SimpleNamespace:
     return SimpleNamespace(**{**base, **kw})
 
 
-def test_assign_pins_only_a_ray_started_for_the_run_and_only_when_asked() -> None:
-    cores = available()
-    expected = plan(cores, ["learner-vae"], ["replay", "rollout-0"])
-    assert assign(runtime(), ["learner-vae"], ["replay", "rollout-0"]) == expected
+@pytest.fixture
+def locks(tmp_path, monkeypatch):
+    """Claims in a lock directory of this test's own, released after it."""
+    monkeypatch.setattr(cores, "LOCK_DIR", tmp_path / "cores")
+    yield tmp_path / "cores"
+    cores.release()
+
+
+def test_assign_pins_only_a_ray_started_for_the_run_and_only_when_asked(locks) -> None:
     assert assign(runtime(pin_cores="shared"), ["learner-vae"], ["replay"]) == {}
     assert assign(runtime(address="10.0.0.5:6379"), ["learner-vae"], ["replay"]) == {}  # a shared cluster
     local = runtime(_target_="orchestrator.runtime.local.LocalRuntime")
     assert assign(local, ["learner-vae"], ["replay"]) == {}
+    expected = plan(available(), ["learner-vae"], ["replay", "rollout-0"])
+    assert assign(runtime(), ["learner-vae"], ["replay", "rollout-0"]) == expected
+
+
+def _hold(core: int, lock_dir, ready, done) -> None:
+    cores.LOCK_DIR = lock_dir
+    assert cores.claim([core])
+    ready.set()
+    done.wait(60)
+
+
+@linux_only
+def test_a_core_another_run_holds_is_left_to_it_and_freed_when_that_run_ends(locks) -> None:
+    """Two runs on one machine (a parallel sweep's points): the second sees the first's core as taken and
+    plans without it; once the first lets go (or its process ends) the core is free again."""
+    mine = available()
+    if len(mine) < 2:
+        pytest.skip("needs 2 cores")
+    ctx = multiprocessing.get_context("spawn")
+    ready, done = ctx.Event(), ctx.Event()
+    other = ctx.Process(target=_hold, args=(mine[-1], locks, ready, done))
+    other.start()
+    try:
+        assert ready.wait(60)
+        assert cores.held_elsewhere(mine[-1]) and not cores.held_elsewhere(mine[0])
+        expected = plan(mine[:-1], ["learner-vae"], ["replay"])  # {} on 2 cores: one left, none to spare
+        assert assign(runtime(), ["learner-vae"], ["replay"]) == expected
+    finally:
+        done.set()
+        other.join(60)
+    assert not cores.held_elsewhere(mine[-1])  # the other run's process ended: its core is free
+    got = assign(runtime(), ["learner-vae"], ["replay"])
+    assert got == plan(mine, ["learner-vae"], ["replay"]) and got["learner-vae"] == (mine[-1],)
+    assert cores.held_elsewhere(mine[-1])  # held by this run now, until release
+    cores.release()
+    assert not cores.held_elsewhere(mine[-1])
 
 
 class Probe:
