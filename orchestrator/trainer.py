@@ -82,6 +82,12 @@ class Trainer:
         ]
         worker_res = [replace(worker_res, cores=cores.get(w, ())) for w in workers]
         runtime.reserve(res + worker_res)
+        if r.learner_compile != "eager":
+            log.info(
+                "runtime.learner_compile=%s: each learner compiles its loss at its first update, minutes the first "
+                "time on this machine and seconds after (runtime.learner_compile=eager skips it)",
+                r.learner_compile,
+            )
         self.handles: dict[str, Any] = {
             c.key: runtime.spawn(c.cls, *c.args, name=c.actor, resources=rc, **c.kwargs)
             for c, rc in zip(components, res, strict=True)

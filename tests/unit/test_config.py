@@ -62,6 +62,7 @@ def test_defaults_are_the_laptop_run():
     assert "walker/turn_left0" in cfg.motion.clips and cfg.algo.vae.prior == "conditional"
     assert list(cfg.algo.world_model.hidden) == [256, 256, 256]  # algo_scale/controlvae_laptop
     assert cfg.algo.ppo is None and cfg.algo.discriminator is None
+    assert cfg.runtime.learner_compile == "eager" and cfg.runtime.pin_cores == "auto"
     paper = validate(composed("scale=paper"))
     assert list(paper.algo.vae.policy_hidden) == [512, 512, 512] and paper.algo.vae.num_experts == 6
     # ControlVAE's schedule: 2,048 states per epoch, 8 updates of 512 x 8 and of 512 x 24 -> ratios 16 and 48.
