@@ -1,8 +1,8 @@
 """workers.sim.warp_physics: MuJoCo Warp on Warp's CPU device against MuJoCo C, from the same states
 under the same controls.
 
-The first test to step compiles MuJoCo Warp's kernels (about a minute on two cores; Warp caches them
-in its kernel cache for later runs), hence `slow`. Tolerances: over the two control steps (32 physics
+The first test to step compiles MuJoCo Warp's kernels (36-60 s on two cores; Warp caches them in
+its kernel cache for later runs), hence `slow`. Tolerances: over the two control steps (32 physics
 steps at 480 Hz) compared here, qpos and body positions were measured within 4e-7 and velocities within
 2e-5 of MuJoCo C's float64 (docs/warp.md has the measurement over longer horizons); the bounds below
 leave a margin of about 25 for other CPUs and compilers, and are still far below what a wrong step
