@@ -74,7 +74,10 @@ class WarpUnavailable(ImportError):
 
 def warp_available() -> bool:
     """Whether mujoco_warp and warp can be imported (looked up, not imported)."""
-    return all(importlib.util.find_spec(name) is not None for name in ("mujoco_warp", "warp"))
+    try:
+        return all(importlib.util.find_spec(name) is not None for name in ("mujoco_warp", "warp"))
+    except ValueError:  # a module set to None in sys.modules (blocked): not importable
+        return False
 
 
 def _import_warp():
