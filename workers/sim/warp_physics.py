@@ -266,7 +266,7 @@ class WarpPhysics:
         """[nworld] bool: contacts or constraint rows that did not fit (nconmax/njmax too small) since the
         data was made; such a world's physics dropped them and is not MuJoCo's any more."""
         mjw = self._mjw
-        capacity = mjw._src.types.OverflowType
+        capacity = mjw.OverflowType
         mask = int(capacity.NEFC | capacity.BROADPHASE | capacity.NARROWPHASE | capacity.NJMAX_NNZ)
         return (self.d.overflow.numpy() & mask) != 0
 
