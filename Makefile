@@ -22,7 +22,7 @@ setup:
 	$(PY) -m venv $(VENV)
 	$(BIN)/pip install --upgrade pip
 	$(BIN)/pip install $(TORCH)
-	$(BIN)/pip install -c constraints.txt -e '.[dev]'
+	$(BIN)/pip install -c constraints.txt -e '.[dev,warp]'
 	$(MAKE) samples
 
 # Third-party BVH files the import tests read (from bvhtoolbox's and bvhtools' sdists on PyPI; tests/samples.py).

@@ -79,6 +79,7 @@ from workers.types import KinState
 # environments closer than this (plus the geoms' margins) get their contacts read.
 FLOOR_SLACK_M = 0.01
 _YZX, _ZXY = [1, 2, 0], [2, 0, 1]  # component orders of a cross product
+BACKENDS = ("mujoco", "warp")
 
 
 @dataclass
@@ -103,6 +104,18 @@ class SimConfig:
     threads: int = 1
     # The ground: flat (the character file's floor) or a rough height field (`workers.sim.terrain`).
     terrain: TerrainConfig = field(default_factory=TerrainConfig)
+    # Physics: "mujoco" (MuJoCo C, this module) or "warp" (MuJoCo Warp, `workers.sim.warp_physics`; needs the
+    # warp extra, and BatchedSim does not run on it yet: docs/warp.md).
+    backend: str = "mujoco"
+
+    def __post_init__(self) -> None:
+        if self.backend not in BACKENDS:
+            raise ValueError(f"sim backend must be one of {BACKENDS}, got {self.backend!r}")
+        if self.backend == "warp":
+            from workers.sim.warp_physics import INSTALL_HINT, WarpUnavailable, warp_available
+
+            if not warp_available():
+                raise WarpUnavailable(f"sim backend 'warp' needs mujoco-warp and warp-lang: {INSTALL_HINT}")
 
     @property
     def substeps(self) -> int:
@@ -189,6 +202,10 @@ class BatchedSim:
         self.character = character
         self.library = library
         self.config = config or SimConfig()
+        if self.config.backend != "mujoco":
+            raise NotImplementedError(
+                f"BatchedSim runs on MuJoCo C only so far (sim backend {self.config.backend!r}: docs/warp.md)"
+            )
         if self.config.threads < 1:
             raise ValueError(f"threads must be at least 1, got {self.config.threads}")
         self.substeps = self.config.substeps

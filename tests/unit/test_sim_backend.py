@@ -1,0 +1,34 @@
+"""SimConfig.backend: "mujoco" (the default) or "warp", refused in one line where the warp extra is missing;
+BatchedSim itself runs on MuJoCo C only so far (docs/warp.md)."""
+
+from __future__ import annotations
+
+import sys
+
+import pytest
+
+from workers.sim.env import BatchedSim, SimConfig
+from workers.sim.warp_physics import WarpUnavailable
+
+
+def test_default_backend_is_mujoco():
+    assert SimConfig().backend == "mujoco"
+
+
+def test_unknown_backend_is_refused():
+    with pytest.raises(ValueError, match="'bullet'"):
+        SimConfig(backend="bullet")
+
+
+def test_warp_without_the_extra_is_refused_in_one_line(monkeypatch):
+    monkeypatch.setitem(sys.modules, "mujoco_warp", None)  # as if not installed
+    with pytest.raises(WarpUnavailable) as e:
+        SimConfig(backend="warp")
+    message = str(e.value)
+    assert "pip install -e '.[warp]'" in message and "\n" not in message
+
+
+def test_batched_sim_does_not_run_on_warp_yet(character, walk_run):
+    pytest.importorskip("mujoco_warp")
+    with pytest.raises(NotImplementedError, match="MuJoCo C only"):
+        BatchedSim(character, walk_run, 2, SimConfig(backend="warp"))

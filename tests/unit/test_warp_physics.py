@@ -1,0 +1,126 @@
+"""workers.sim.warp_physics: MuJoCo Warp on Warp's CPU device against MuJoCo C, from the same states
+under the same controls.
+
+The first test to step compiles MuJoCo Warp's kernels (36-60 s on two cores; Warp caches them in
+its kernel cache for later runs), hence `slow`. Tolerances: over the two control steps (32 physics
+steps at 480 Hz) compared here, qpos and body positions were measured within 4e-7 and velocities within
+2e-5 of MuJoCo C's float64 (docs/warp.md has the measurement over longer horizons); the bounds below
+leave a margin of about 25 for other CPUs and compilers, and are still far below what a wrong step
+count, control or timestep would give (1e-3 and more after one control step).
+"""
+
+from __future__ import annotations
+
+import re
+import sys
+
+import mujoco
+import numpy as np
+import pytest
+import torch
+
+pytest.importorskip("mujoco_warp")
+
+from workers.sim.warp_physics import INSTALL_HINT, WarpPhysics, WarpUnavailable, contact_capacity  # noqa: E402
+
+SUBSTEPS = 16  # one control step at 480/30 Hz
+POS_TOL = 1e-5  # qpos, xpos, xquat (metres, radians, quaternion components)
+VEL_TOL = 5e-4  # qvel (m/s, rad/s)
+
+
+@pytest.fixture(scope="module")
+def model(character):
+    return character.model
+
+
+@pytest.fixture(scope="module")
+def sim(model):
+    return WarpPhysics(model, nworld=4, device="cpu")
+
+
+def start_states(model, walk_run):
+    """Four states: walk and run reference frames (feet on the floor), and two random perturbations of
+    the model's qpos0 (0.9 m above the floor, falling, with random velocities)."""
+    clips, frames = np.array([0, 1]), np.array([5, 10])
+    ref = walk_run.state(clips, frames)
+    qpos, qvel = [*ref.qpos], [*ref.qvel]
+    rng = np.random.default_rng(0)
+    for _ in range(2):
+        q = model.qpos0.copy()
+        mujoco.mj_integratePos(model, q, rng.normal(0.0, 0.5, model.nv), 0.3)
+        qpos.append(q)
+        qvel.append(rng.normal(0.0, 0.3, model.nv))
+    return np.array(qpos), np.array(qvel), clips, frames
+
+
+def c_data(model, qpos, qvel):
+    d = mujoco.MjData(model)
+    d.qpos[:], d.qvel[:] = qpos, qvel
+    mujoco.mj_forward(model, d)
+    return d
+
+
+def test_contact_capacity_of_the_humanoid(model):
+    # Floor contacts only: 5 spheres (1 each), 8 capsules (2), 2 boxes (4); 4 rows per pyramidal
+    # contact of condim 3 and one per limited joint (12).
+    assert contact_capacity(model) == (29, 29 * 4 + 12)
+
+
+def test_missing_extra_is_named(model, monkeypatch):
+    monkeypatch.setitem(sys.modules, "mujoco_warp", None)  # import mujoco_warp now raises ImportError
+    with pytest.raises(WarpUnavailable, match="mujoco-warp.*" + re.escape(INSTALL_HINT)):
+        WarpPhysics(model, nworld=1)
+
+
+@pytest.mark.slow
+def test_state_set_is_state_read(sim, model, walk_run):
+    qpos, qvel, _, _ = start_states(model, walk_run)
+    sim.set_state(range(4), np.repeat(model.qpos0[None], 4, 0), np.zeros((4, model.nv)))
+    sim.set_state([3, 1], qpos[[0, 2]], qvel[[0, 2]])
+    f32 = torch.float32
+    assert torch.equal(sim.qpos[3], torch.as_tensor(qpos[0], dtype=f32))
+    assert torch.equal(sim.qvel[1], torch.as_tensor(qvel[2], dtype=f32))
+    # The others are untouched.
+    for w in (0, 2):
+        assert torch.equal(sim.qpos[w], torch.as_tensor(model.qpos0, dtype=f32))
+        assert torch.equal(sim.qvel[w], torch.zeros(model.nv))
+    # Body positions and orientations (w x y z) are those of the new states, as MuJoCo C computes them.
+    for w, i in ((3, 0), (1, 2)):
+        d = c_data(model, qpos[i], qvel[i])
+        np.testing.assert_allclose(sim.xpos[w].numpy(), d.xpos, atol=POS_TOL)
+        np.testing.assert_allclose(sim.xquat[w].numpy(), d.xquat, atol=POS_TOL)
+    assert sim.xpos.shape == (4, model.nbody, 3) and sim.xquat.shape == (4, model.nbody, 4)
+    # Zero-copy: the tensors are views of MuJoCo Warp's arrays.
+    assert sim.qpos.data_ptr() == sim.d.qpos.ptr and sim.xpos.data_ptr() == sim.d.xpos.ptr
+    with pytest.raises(ValueError, match="shape"):
+        sim.set_state([0], qpos[:2], qvel[:2])
+    with pytest.raises(IndexError):
+        sim.set_state([4], qpos[:1], qvel[:1])
+
+
+@pytest.mark.slow
+def test_matches_mujoco_c_over_two_control_steps(sim, model, character, walk_run):
+    qpos, qvel, clips, frames = start_states(model, walk_run)
+    sim.set_state(range(4), qpos, qvel)
+    datas = [c_data(model, qpos[w], qvel[w]) for w in range(4)]
+    ncon = 0
+    for t in range(2):
+        # The references' PD targets for the walk and run worlds; the falling ones hold their start pose.
+        ctrl = np.concatenate([walk_run.pd_targets(clips, frames + t + 1), character.qpos_to_action(qpos[2:])])
+        sim.set_ctrl(ctrl)
+        sim.step(SUBSTEPS)
+        for w, d in enumerate(datas):
+            d.ctrl[:] = ctrl[w]
+            mujoco.mj_step(model, d, nstep=SUBSTEPS)
+            mujoco.mj_step1(model, d)  # positions of the new state, as WarpPhysics.step leaves them
+            ncon += d.ncon
+        np.testing.assert_allclose(sim.time.numpy(), (t + 1) * SUBSTEPS * model.opt.timestep, rtol=1e-5)
+        for w, d in enumerate(datas):
+            np.testing.assert_allclose(sim.qpos[w].numpy(), d.qpos, atol=POS_TOL, err_msg=f"world {w}, step {t}")
+            np.testing.assert_allclose(sim.qvel[w].numpy(), d.qvel, atol=VEL_TOL, err_msg=f"world {w}, step {t}")
+            np.testing.assert_allclose(sim.xpos[w].numpy(), d.xpos, atol=POS_TOL, err_msg=f"world {w}, step {t}")
+            np.testing.assert_allclose(sim.xquat[w].numpy(), d.xquat, atol=POS_TOL, err_msg=f"world {w}, step {t}")
+    assert ncon > 0  # the comparison covered contacts with the floor
+    assert not sim.overflowed().any()
+    # The worlds moved (a step that did nothing would not be within the tolerance of MuJoCo C either).
+    assert np.abs(sim.qpos.numpy() - qpos).max() > 100 * POS_TOL
