@@ -26,6 +26,13 @@ def _batch(n: int = 8, t: int = 3) -> WorldModelBatch:
     return WorldModelBatch(torch.cat((pos, quat, vel), -1), torch.randn(n, t, ACTION_DIM, generator=gen) * 0.3)
 
 
+def _vae_learner() -> VAELearner:
+    """A tiny ControlVAE learner, the same from the same seed."""
+    torch.manual_seed(0)
+    config = VAEConfig(latent_dim=4, encoder_hidden=(16,), num_experts=2, policy_hidden=(16,), gate_hidden=(8,))
+    return VAELearner(NUM_BODIES, ACTION_DIM, config, world_model=WorldModel(NUM_BODIES, ACTION_DIM, (16,)))
+
+
 def _learner() -> WorldModelLearner:
     torch.manual_seed(0)
     return WorldModelLearner(NUM_BODIES, ACTION_DIM, DT, WorldModelConfig(hidden=(32, 32), rollout_steps=3))
@@ -101,12 +108,7 @@ def test_compiled_controlvae_matches_eager_with_the_same_draws() -> None:
     states = _batch(n=8, t=3).states
     batch = VAEBatch(states, states.clone())
 
-    def learner() -> VAELearner:
-        torch.manual_seed(0)
-        config = VAEConfig(latent_dim=4, encoder_hidden=(16,), num_experts=2, policy_hidden=(16,), gate_hidden=(8,))
-        return VAELearner(NUM_BODIES, ACTION_DIM, config, world_model=WorldModel(NUM_BODIES, ACTION_DIM, (16,)))
-
-    eager, compiled = learner(), learner()
+    eager, compiled = _vae_learner(), _vae_learner()
     compiled.compile()
     results = []
     for vae in (eager, compiled):
@@ -171,12 +173,7 @@ def test_a_compile_that_fails_leaves_the_learner_eager_with_the_same_draws(monke
     states = _batch(n=8, t=3).states
     batch = VAEBatch(states, states.clone())
 
-    def learner() -> VAELearner:
-        torch.manual_seed(0)
-        config = VAEConfig(latent_dim=4, encoder_hidden=(16,), num_experts=2, policy_hidden=(16,), gate_hidden=(8,))
-        return VAELearner(NUM_BODIES, ACTION_DIM, config, world_model=WorldModel(NUM_BODIES, ACTION_DIM, (16,)))
-
-    eager, fallen_back = learner(), learner()
+    eager, fallen_back = _vae_learner(), _vae_learner()
     monkeypatch.setattr(torch, "compile", failing_compile)
     fallen_back.compile()
     with caplog.at_level("WARNING", logger="workers.learners.base"):
