@@ -12,7 +12,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from orchestrator.provenance import CODE_VERSIONS
-from orchestrator.runtime.cores import PIN_MODES
 from orchestrator.tracking.uri import tracking_uri_error
 from workers.body.character import file_problem
 from workers.learners.base import COMPILE_MODES as LEARNER_COMPILE
@@ -27,6 +26,8 @@ from workers.motion.formats import resolve
 from workers.rewards import DEFAULT_WEIGHTS as IMITATION_WEIGHTS
 from workers.rewards import IMITATION_TERMS
 from workers.sim.terrain import TerrainConfig
+
+PIN_MODES = ("auto", "shared")  # runtime.pin_cores (orchestrator/runtime/cores.py); not "off": YAML reads it as false
 
 LOCOMOTION = [
     "humanoid3d_walk",

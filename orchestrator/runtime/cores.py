@@ -23,8 +23,6 @@ from pathlib import Path
 
 log = logging.getLogger(__name__)
 
-PIN_MODES = ("auto", "shared")  # not "off": YAML reads that as false
-
 
 def available() -> list[int]:
     """The cores this process may run on, in order; [] where the platform cannot pin."""
