@@ -62,16 +62,14 @@ def _hold(core: int, lock_dir, ready, done) -> None:
 def test_a_core_another_run_holds_is_left_to_it_and_freed_when_that_run_ends(locks) -> None:
     """Two runs on one machine (a parallel sweep's points): the second sees the first's core as taken and
     plans without it; once the first lets go (or its process ends) the core is free again."""
-    mine = available()
-    if len(mine) < 2:
-        pytest.skip("needs 2 cores")
+    mine = available()  # on one core the plans are all {}, and the claims below are still checked
     ctx = multiprocessing.get_context("spawn")
     ready, done = ctx.Event(), ctx.Event()
     other = ctx.Process(target=_hold, args=(mine[-1], locks, ready, done))
     other.start()
     try:
         assert ready.wait(60)
-        assert cores.held_elsewhere(mine[-1]) and not cores.held_elsewhere(mine[0])
+        assert cores.held_elsewhere(mine[-1]) and (len(mine) == 1 or not cores.held_elsewhere(mine[0]))
         expected = plan(mine[:-1], ["learner-vae"], ["replay"])  # {} on 2 cores: one left, none to spare
         assert assign(runtime(), ["learner-vae"], ["replay"]) == expected
     finally:
@@ -79,8 +77,9 @@ def test_a_core_another_run_holds_is_left_to_it_and_freed_when_that_run_ends(loc
         other.join(60)
     assert not cores.held_elsewhere(mine[-1])  # the other run's process ended: its core is free
     got = assign(runtime(), ["learner-vae"], ["replay"])
-    assert got == plan(mine, ["learner-vae"], ["replay"]) and got["learner-vae"] == (mine[-1],)
-    assert cores.held_elsewhere(mine[-1])  # held by this run now, until release
+    assert got == plan(mine, ["learner-vae"], ["replay"])
+    assert cores.held_elsewhere(mine[-1]) == bool(got)  # held by this run now (when pinned), until release
+    assert not got or got["learner-vae"] == (mine[-1],)
     cores.release()
     assert not cores.held_elsewhere(mine[-1])
 
