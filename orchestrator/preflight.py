@@ -11,6 +11,7 @@ anything is written to the run directory, so that bad input leaves everything al
 - `runtime.address` answers within `runtime.connect_timeout_s` (runtime=ray);
 - a GPU asked for (`runtime.learner_device=cuda`, `runtime.learner_gpus`) is one this machine has (the
   local runtime, or a Ray started for the run) or, at a cluster's `runtime.address`, one the cluster has;
+  so is the warp simulator's (`sim.device`);
 - every stage spec of the chain of upstream stages composes (`stages.plan`), and `motion.joint_map`
   names bodies of the character;
 - with `resume=true`, the run in run.json is still in the store, and a checkpoint in the run directory
@@ -56,6 +57,7 @@ def check(cfg: Config) -> None:
             raise ConfigError(f"tracking.uri: {problem}")
         tracking_server(cfg.tracking.uri)
     learner_devices(cfg)
+    sim_device(cfg)
     if cfg.algo.needs:
         from orchestrator.stages import plan  # loads mlflow: only for a method with upstream stages
 
@@ -118,6 +120,30 @@ def learner_devices(cfg: Config) -> None:
         )
     if not here and r.learner_gpus > 0:
         cluster_gpus(cfg)
+
+
+def sim_device(cfg: Config) -> None:
+    """ConfigError naming `sim.device` when the warp simulator is to run on a GPU this machine does not have
+    (on a cluster, rollout workers see the GPUs Ray assigns them: not checked here)."""
+    r = cfg.runtime
+    here = not uses_ray(r) or not r.address
+    if here and uses_ray(r) and r.worker_gpus > 0 and not torch.cuda.device_count():
+        raise ConfigError(f"runtime.worker_gpus={r.worker_gpus:g}: no GPU on this machine (torch sees none)")
+    if cfg.sim.backend != "warp" or not cfg.sim.device.startswith("cuda"):
+        return
+    if not here:
+        if r.worker_gpus <= 0:
+            raise ConfigError(
+                f"sim.device={cfg.sim.device}: a rollout worker on the cluster at runtime.address sees only the GPUs "
+                "Ray assigns it; set runtime.worker_gpus (e.g. 0.25)"
+            )
+        return
+    index = int(cfg.sim.device.partition(":")[2] or 0)
+    if index >= torch.cuda.device_count():
+        raise ConfigError(
+            f"sim.device={cfg.sim.device}: no such GPU on this machine (torch {torch.__version__} sees "
+            f"{torch.cuda.device_count()}); sim.device=cpu runs Warp's CPU kernels (slowly)"
+        )
 
 
 def cluster_gpus(cfg: Config) -> None:

@@ -9,6 +9,7 @@ module holds only the dataclasses (and `ConfigError`); it reads no method's code
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass, field
 
 from orchestrator.provenance import CODE_VERSIONS
@@ -26,7 +27,9 @@ from workers.motion.formats import resolve
 from workers.rewards import DEFAULT_WEIGHTS as IMITATION_WEIGHTS
 from workers.rewards import IMITATION_TERMS
 from workers.sim.terrain import TerrainConfig
+from workers.sim.warp_physics import INSTALL_HINT, warp_available
 
+SIM_BACKENDS = ("mujoco", "warp")
 PIN_MODES = ("auto", "shared")  # runtime.pin_cores (orchestrator/runtime/cores.py); not "off": YAML reads it as false
 
 LOCOMOTION = [
@@ -296,6 +299,9 @@ class RuntimeConfig:
     worker_cpus: float = 1.0
     learner_cpus: float = 1.0
     learner_gpus: float = 0.0
+    # Ray only: GPUs per rollout worker (a fraction shares one), for sim.backend=warp on sim.device=cuda; 0 with
+    # a Ray started for the run: an equal share of the first GPU with the learners that take one.
+    worker_gpus: float = 0.0
     max_restarts: int = 3
     # Ray only: object store size (MiB) when Ray is started for the run.
     object_store_mb: int = 512
@@ -327,6 +333,8 @@ class RuntimeConfig:
             raise ConfigError(f"runtime.learner_compile must be one of {LEARNER_COMPILE}, got {self.learner_compile!r}")
         if self.learner_gpus < 0:
             raise ConfigError(f"runtime.learner_gpus must be non-negative, got {self.learner_gpus}")
+        if self.worker_gpus < 0:
+            raise ConfigError(f"runtime.worker_gpus must be non-negative, got {self.worker_gpus}")
         if self.rollout_workers < 1:
             raise ConfigError(f"runtime.rollout_workers must be at least 1, got {self.rollout_workers}")
         if self.envs_per_worker < 1:
@@ -427,6 +435,25 @@ class EvalConfig:
 
 
 @dataclass
+class SimSettings:
+    # The physics engine of the rollout workers and evaluations: mujoco (MuJoCo C on CPU cores) or warp
+    # (MuJoCo Warp: the `warp` extra; docs/warp.md). A method runs unchanged on either.
+    backend: str = "mujoco"
+    # warp only: the Warp device, cpu (correctness, slow) | cuda | cuda:N.
+    device: str = "cpu"
+
+    def __post_init__(self) -> None:
+        if self.backend not in SIM_BACKENDS:
+            raise ConfigError(f"sim.backend must be one of {SIM_BACKENDS}, got {self.backend!r}")
+        if self.device != "cpu" and not re.fullmatch(r"cuda(:\d+)?", self.device):
+            raise ConfigError(f"sim.device must be cpu, cuda or cuda:N, got {self.device!r}")
+        if self.backend == "warp" and not warp_available():
+            raise ConfigError(
+                f"sim.backend: warp needs mujoco-warp and warp-lang, which are not installed ({INSTALL_HINT})"
+            )
+
+
+@dataclass
 class Config:
     character: CharacterConfig = field(default_factory=CharacterConfig)
     motion: MotionConfig = field(default_factory=MotionConfig)
@@ -437,6 +464,8 @@ class Config:
     # The ground the rollout workers and evaluations simulate (not shared with upstream stages: a task on
     # rough terrain uses a skill model trained on flat ground).
     terrain: TerrainConfig = field(default_factory=TerrainConfig)
+    # The simulator's engine and device.
+    sim: SimSettings = field(default_factory=SimSettings)
     # Seed of everything: network initialisation, sampling, the simulators.
     seed: int = 0
     # The preset that made this config (the MLflow experiment unless tracking.experiment says otherwise).
@@ -455,3 +484,10 @@ class Config:
     # '+stage_overrides.tracker=["algo.loop.iterations=600"]' trains a longer expert for every stage above
     # this run, '+stage_overrides.demos=["algo.needs.expert=run:<id>"]' uses a given expert run.
     stage_overrides: dict[str, list[str]] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if self.sim.backend == "warp" and self.terrain.kind != "flat":
+            raise ConfigError(
+                f"terrain.kind: {self.terrain.kind} terrain is a height field, which sim.backend=warp cannot simulate "
+                "yet (MuJoCo Warp: at most 4 contacts per height-field collider; docs/warp.md); use sim.backend=mujoco"
+            )

@@ -28,7 +28,7 @@ from tqdm import tqdm
 from orchestrator import checkpoint
 from orchestrator.algos.base import Method, method_class
 from orchestrator.components.rollout import RolloutActor
-from orchestrator.runtime.base import Resources, Runtime, learner_gpus
+from orchestrator.runtime.base import Resources, Runtime, learner_gpus, worker_gpus
 from orchestrator.runtime.cores import assign
 from orchestrator.schema import Config
 from orchestrator.tracking.base import RunLogger
@@ -69,10 +69,14 @@ class Trainer:
         self.method: Method = method_class(cfg.algo._target_)(cfg, character, upstream)
         r = cfg.runtime
         num_workers = r.rollout_workers if self.method.uses_workers else 0
-        worker_res = Resources(cpus=r.worker_cpus, max_restarts=r.max_restarts)
         components = self.method.components()
         learners = sum(c.role != "replay" for c in components)
-        learner_res = Resources(cpus=r.learner_cpus, gpus=learner_gpus(r, learners), max_restarts=r.max_restarts)
+        per_worker = worker_gpus(r, cfg.sim, num_workers, learners)
+        worker_res = Resources(cpus=r.worker_cpus, gpus=per_worker, max_restarts=r.max_restarts)
+        gpu_workers = num_workers if per_worker > 0 and r.worker_gpus == 0 else 0
+        learner_res = Resources(
+            cpus=r.learner_cpus, gpus=learner_gpus(r, learners, gpu_workers), max_restarts=r.max_restarts
+        )
         replay_res = Resources(cpus=0.5, max_restarts=r.max_restarts)
         workers = [f"rollout-{i}" for i in range(num_workers)]
         own = [c.actor for c in components if c.own_core]

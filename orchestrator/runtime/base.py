@@ -61,13 +61,31 @@ def uses_ray(runtime_cfg: Any) -> bool:
     return str(runtime_cfg._target_).endswith("RayRuntime")
 
 
-def learner_gpus(runtime_cfg: Any, learners: int) -> float:
+def learner_gpus(runtime_cfg: Any, learners: int, gpu_workers: int = 0) -> float:
     """The GPUs each learner actor reserves under Ray: `runtime.learner_gpus` when it is set; with
     `learner_device` auto or cuda, a Ray started for the run (no `address`) and a GPU on this machine, an
-    equal share of one GPU per learner (all learners on the first GPU); else none."""
+    equal share of one GPU per learner (all learners on the first GPU), shared with `gpu_workers` rollout
+    workers that simulate on it too (`worker_gpus`); else none."""
     r = runtime_cfg
     if not uses_ray(r) or r.learner_gpus > 0 or r.learner_device == "cpu" or r.address or learners < 1:
         return float(r.learner_gpus) if uses_ray(r) else 0.0
+    return _share(learners + gpu_workers)
+
+
+def worker_gpus(runtime_cfg: Any, sim: Any, workers: int, learners: int) -> float:
+    """The GPUs each rollout worker reserves under Ray: `runtime.worker_gpus` when it is set; with the warp
+    simulator on a GPU (`sim.device` cuda), a Ray started for the run and a GPU here, an equal share of the
+    first GPU with the learners that take one (`learner_gpus`); else none. Ray gives an actor without a GPU
+    share no GPU to see, so a cuda simulator under Ray needs one."""
+    r = runtime_cfg
+    on_gpu = sim.backend == "warp" and sim.device.startswith("cuda")
+    if not uses_ray(r) or r.worker_gpus > 0 or not on_gpu or r.address or workers < 1:
+        return float(r.worker_gpus) if uses_ray(r) else 0.0
+    sharing = learners if r.learner_gpus == 0 and r.learner_device != "cpu" else 0
+    return _share(workers + sharing)
+
+
+def _share(actors: int) -> float:
     import torch
 
-    return round(1.0 / learners, 4) if torch.cuda.device_count() > 0 else 0.0
+    return round(1.0 / actors, 4) if torch.cuda.device_count() > 0 and actors > 0 else 0.0

@@ -355,6 +355,7 @@ def test_unreadable_run_file_is_named_on_resume(tmp_path, capsys):
     [
         (("runtime.learner_device=cuda",), "runtime.learner_device=cuda"),
         (("runtime=ray", "runtime.learner_gpus=1"), "runtime.learner_gpus=1"),
+        (("runtime=ray", "runtime.worker_gpus=0.5"), "runtime.worker_gpus=0.5"),
     ],
 )
 def test_a_gpu_that_is_not_there_is_refused_before_anything_starts(tmp_path, capsys, overrides, key):
@@ -362,6 +363,23 @@ def test_a_gpu_that_is_not_there_is_refused_before_anything_starts(tmp_path, cap
     line = assert_refused(tmp_path, code, err, key, "no GPU on this machine")
     assert line.startswith("config error: ")
     assert not (tmp_path / "run").exists()  # nothing written, no Ray started, no run in a store
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="this machine has a GPU")
+def test_a_warp_simulator_on_a_gpu_that_is_not_there_is_refused_before_anything_starts(tmp_path, capsys):
+    pytest.importorskip("mujoco_warp")
+    code, err = run_main(tmp_path, capsys, "motion=walk", "sim.backend=warp", "sim.device=cuda:1")
+    line = assert_refused(tmp_path, code, err, "sim.device=cuda:1", "no such GPU on this machine")
+    assert line.startswith("config error: ") and "sim.device=cpu" in line
+    assert not (tmp_path / "run").exists()
+
+
+def test_rough_terrain_on_the_warp_simulator_is_refused_in_one_line(tmp_path, capsys):
+    pytest.importorskip("mujoco_warp")
+    code, err = run_main(tmp_path, capsys, "motion=walk", "sim.backend=warp", "terrain.kind=rough")
+    line = assert_refused(tmp_path, code, err, "terrain.kind", "height field")
+    assert "sim.backend=mujoco" in line
+    assert not (tmp_path / "run").exists()
 
 
 # i. Stage specs, joint maps and resumed runs, refused before anything runs ----------------------------------

@@ -55,6 +55,29 @@ def test_a_ray_learner_takes_a_share_of_the_gpu_only_when_there_is_one(monkeypat
     assert learner_gpus(SimpleNamespace(**{**ray, "address": "auto"}), 2) == 0.0  # a cluster's: set it
     local = SimpleNamespace(_target_="orchestrator.runtime.local.LocalRuntime", learner_device="auto", learner_gpus=0)
     assert learner_gpus(local, 2) == 0.0
+    assert learner_gpus(SimpleNamespace(**ray), 2, gpu_workers=2) == 0.25  # sharing with two simulating workers
+
+
+def test_rollout_workers_take_a_share_of_the_gpu_only_for_a_warp_simulator_on_it(monkeypatch):
+    from types import SimpleNamespace
+
+    from orchestrator.runtime.base import worker_gpus
+
+    ray = dict(
+        _target_="orchestrator.runtime.ray.RayRuntime", worker_gpus=0.0, learner_gpus=0.0, learner_device="auto",
+        address=None,
+    )  # fmt: skip
+    warp = SimpleNamespace(backend="warp", device="cuda")
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 1)
+    assert worker_gpus(SimpleNamespace(**ray), warp, 2, 2) == 0.25  # two workers and two learners on one GPU
+    assert worker_gpus(SimpleNamespace(**{**ray, "learner_device": "cpu"}), warp, 2, 2) == 0.5
+    assert worker_gpus(SimpleNamespace(**{**ray, "learner_gpus": 1.0}), warp, 2, 2) == 0.5  # learners set apart
+    assert worker_gpus(SimpleNamespace(**{**ray, "worker_gpus": 0.1}), warp, 2, 2) == 0.1  # as set
+    assert worker_gpus(SimpleNamespace(**{**ray, "address": "auto"}), warp, 2, 2) == 0.0  # a cluster's: set it
+    assert worker_gpus(SimpleNamespace(**ray), SimpleNamespace(backend="warp", device="cpu"), 2, 2) == 0.0
+    assert worker_gpus(SimpleNamespace(**ray), SimpleNamespace(backend="mujoco", device="cuda"), 2, 2) == 0.0
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 0)
+    assert worker_gpus(SimpleNamespace(**ray), warp, 2, 2) == 0.0
 
 
 def walk_windows(walk_run, n: int = 6, steps: int = 3) -> np.ndarray:
