@@ -58,8 +58,10 @@ RUN_ID = re.compile(r"(?:run:)?([0-9a-f]{32})")
 NOT_RESULT = ("run_dir", "progress", "tracking", "resume", "preset", "sweep_seeds", "scale_name", "stage_overrides")
 RUNTIME_RESULT = ("rollout_workers", "envs_per_worker")
 # What an upstream stage shares with the run that needs it.
-SHARED = ("character", "motion", "runtime", "eval", "tracking", "progress", "preset", "scale_name", "stage_overrides")
-SECTIONS_SHARED = ("character", "motion", "runtime", "eval", "tracking")
+SHARED = (
+    "character", "motion", "runtime", "sim", "eval", "tracking", "progress", "preset", "scale_name", "stage_overrides"
+)  # fmt: skip
+SECTIONS_SHARED = ("character", "motion", "runtime", "sim", "eval", "tracking")
 
 
 def config_hash(cfg: Config, upstream: dict[str, str] | None = None) -> str:
@@ -68,6 +70,11 @@ def config_hash(cfg: Config, upstream: dict[str, str] | None = None) -> str:
     for key in NOT_RESULT:
         d.pop(key, None)
     d["runtime"] = {k: d["runtime"][k] for k in RUNTIME_RESULT}
+    # The engine changes the physics (MuJoCo Warp computes in float32); its device does not. MuJoCo C is left
+    # out, so that stages stored before the switch existed keep their hashes.
+    sim = d.pop("sim")
+    if sim["backend"] != "mujoco":
+        d["sim_backend"] = sim["backend"]
     # Sections the method does not use are None: left out, so that a new section elsewhere changes no hash.
     # The method is named by algo.name; its class's module path (_target_) is where code lives, not what it computes.
     d["algo"] = {k: v for k, v in d["algo"].items() if v is not None and k != "_target_"}

@@ -91,6 +91,17 @@ def test_the_stage_hash_follows_the_contents_of_the_clips_and_the_character(tmp_
     assert stages.config_hash(config(tmp_path, f"motion.clips=[{clip}]", "tracking.reuse_from=[x]")) == hashes[1]
 
 
+def test_the_stage_hash_follows_the_simulator_engine_and_stages_above_run_on_the_same(tmp_path):
+    pytest.importorskip("mujoco_warp")
+    c_engine = stages.config_hash(config(tmp_path))
+    warp = config(tmp_path, "sim.backend=warp")
+    assert stages.config_hash(warp) != c_engine  # float32 physics: another result
+    assert stages.config_hash(config(tmp_path, "sim.backend=warp", "sim.device=cuda")) == stages.config_hash(warp)
+    assert stages.config_hash(config(tmp_path, "sim.device=cuda")) == c_engine  # MuJoCo C ignores the device
+    expert = stages.upstream_config(warp, "tracker", "expert")
+    assert expert.sim.backend == "warp" and expert.algo.name == "tracker"
+
+
 def resolve_character():
     from workers.body.character import HUMANOID_XML
 
