@@ -1,5 +1,5 @@
 """SimConfig.backend: "mujoco" (the default) or "warp", refused in one line where the warp extra is missing;
-BatchedSim itself runs on MuJoCo C only so far (docs/warp.md)."""
+BatchedSim runs MuJoCo C only (make_sim builds the backend a config names)."""
 
 from __future__ import annotations
 
@@ -28,7 +28,7 @@ def test_warp_without_the_extra_is_refused_in_one_line(monkeypatch):
     assert "pip install -e '.[warp]'" in message and "\n" not in message
 
 
-def test_batched_sim_does_not_run_on_warp_yet(character, walk_run):
+def test_batched_sim_refuses_a_warp_config(character, walk_run):
     pytest.importorskip("mujoco_warp")
-    with pytest.raises(NotImplementedError, match="MuJoCo C only"):
+    with pytest.raises(ValueError, match="BatchedSim runs sim backend 'mujoco', the config says 'warp'.*make_sim"):
         BatchedSim(character, walk_run, 2, SimConfig(backend="warp"))
