@@ -14,8 +14,11 @@ velocities; with the PD targets off by 0.01 rad, 1e-2 and 1.2.
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 import pytest
+import torch
 
 pytest.importorskip("mujoco_warp")
 
@@ -178,6 +181,39 @@ def test_save_and_restore_continue_the_same_trajectory(warp):
     np.testing.assert_array_equal(warp.steps, saved["steps"] + 2)
     with pytest.raises(ValueError, match="for 2 environments"):
         warp.restore_state({k: v[:2] for k, v in saved.items()})
+
+
+@pytest.mark.slow
+def test_a_rollout_worker_on_warp_resumes_exactly(character, library):
+    """The rollout worker builds its simulator with make_sim and checkpoints it through save_state/restore_state."""
+    from workers.learners.base import Weights
+    from workers.learners.vae import VAEConfig, build_controller
+    from workers.policies import VAEPolicy
+    from workers.rollout import RolloutWorker
+
+    vae = VAEConfig(latent_dim=8, encoder_hidden=(32,), policy="mlp", policy_hidden=(64,))
+    torch.manual_seed(0)
+    controller = build_controller(character.num_bodies, character.num_actions, vae)
+    weights = Weights(1, {k: v.clone() for k, v in controller.state_dict().items()})
+    config = SimConfig(backend="warp", max_episode_steps=4)  # episodes end (and reset) every four steps
+
+    def worker(seed):
+        policy = VAEPolicy(character.num_bodies, character.num_actions, vae, 0.5)
+        w = RolloutWorker(character, library, 2, policy, sim_config=config, seed=seed)
+        w.set_weights(weights)
+        return w
+
+    first = worker(seed=4)
+    assert type(first.sim) is WarpSim
+    first.collect(3)
+    state = copy.deepcopy(first.state_dict())
+    expected = first.collect(6)
+    assert expected.done.any()  # the comparison covers resets
+    resumed = worker(seed=99)
+    resumed.load_state_dict(state)
+    got = resumed.collect(6)
+    for name in ("states", "next_states", "actions", "done", "clip_id", "frame"):
+        np.testing.assert_array_equal(getattr(got, name), getattr(expected, name), err_msg=name)
 
 
 @pytest.mark.slow
