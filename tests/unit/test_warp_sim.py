@@ -68,6 +68,7 @@ def assert_kin_close(a, b, where):
         np.testing.assert_allclose(getattr(a, name), getattr(b, name), rtol=0, atol=tol, err_msg=f"{name}, {where}")
 
 
+@pytest.mark.slow
 def test_make_sim_builds_the_configured_backend(warp, mujoco_c):
     assert type(warp) is WarpSim and type(mujoco_c) is BatchedSim
     assert warp.physics.nworld == N and warp.physics.device.alias == "cpu"
