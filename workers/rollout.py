@@ -40,7 +40,7 @@ from workers.models import body_state
 from workers.motion.library import MotionLibrary
 from workers.policies import Policy
 from workers.recorders import Recorder
-from workers.sim.env import BatchedSim, SimConfig, StepResult
+from workers.sim.env import SimConfig, StepResult, make_sim
 from workers.types import Trajectory
 
 
@@ -63,7 +63,7 @@ class RolloutWorker:
         self.library = library
         self.worker_id = worker_id
         sim_seed, np_seed, torch_seed = np.random.SeedSequence([seed, worker_id]).generate_state(3)
-        self.sim = BatchedSim(character, library, num_envs, sim_config, seed=int(sim_seed))
+        self.sim = make_sim(character, library, num_envs, sim_config, seed=int(sim_seed))
         self.rng = np.random.default_rng(int(np_seed))
         self.generator = torch.Generator().manual_seed(int(torch_seed))
         self.policy = policy
@@ -299,15 +299,7 @@ class RolloutWorker:
                 "collect_seconds": self.collect_seconds,
                 **{f"ends.{k}": v for k, v in self.ends.items()},
             },
-            "envs": {
-                "qpos": sim._qpos.copy(),
-                "qvel": sim._qvel.copy(),
-                "qacc_warmstart": sim.qacc_warmstart.copy(),
-                "clip_id": sim.clip_id.copy(),
-                "start_frame": sim.start_frame.copy(),
-                "steps": sim.steps.copy(),
-                "bad_head_steps": sim._bad_head_steps.copy(),
-            },
+            "envs": sim.save_state(),
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -330,10 +322,4 @@ class RolloutWorker:
         self.episode_steps = int(c["episode_steps"])
         self.collect_seconds = float(c["collect_seconds"])
         self.ends = {k: int(c[f"ends.{k}"]) for k in self.ends}
-        ids = np.arange(self.num_envs)
-        sim.set_state(ids, envs["qpos"], envs["qvel"])
-        sim.qacc_warmstart[:] = envs["qacc_warmstart"]  # set_state zeroes the warm start; the next step reads it
-        sim.clip_id[:] = envs["clip_id"]
-        sim.start_frame[:] = envs["start_frame"]
-        sim.steps[:] = envs["steps"]
-        sim._bad_head_steps[:] = envs["bad_head_steps"]
+        sim.restore_state(envs)  # physics, warm start and reference bookkeeping

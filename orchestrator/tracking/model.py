@@ -28,7 +28,7 @@ from workers.learners.base import Weights
 from workers.models import body_state
 from workers.motion.library import MotionLibrary
 from workers.policies import Policy
-from workers.sim.env import BatchedSim, SimConfig
+from workers.sim.env import SimConfig, make_sim
 
 log = logging.getLogger(__name__)
 
@@ -53,7 +53,7 @@ def deployable(
     """(module, input example [1, obs_dim]) of `policy` with `weights`, from one standing start of the first
     clip in a simulator as `sim_config` says; None if the policy has no export."""
     policy.set_weights(weights)
-    sim = BatchedSim(character, library, 1, sim_config, seed=seed)
+    sim = make_sim(character, library, 1, sim_config, seed=seed)
     sim.reset(np.zeros(1, int), np.zeros(1, int), np.zeros(1, int))
     found = policy.deployable(sim, body_state.pack(sim.kin_state()))
     if found is None:

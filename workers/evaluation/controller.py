@@ -11,7 +11,7 @@
 - `random_sampling` (ControlVAE Fig. 5): from random dataset states, z from the
   prior every control step for 200 steps; falls and distance travelled.
 
-All batch their rollouts as the environments of one `BatchedSim` and run the
+All batch their rollouts as the environments of one `Simulator` and run the
 networks in eval mode without gradients; the controller's mode is restored after.
 Actions are the policy's mean (no exploration noise).
 """
@@ -28,13 +28,13 @@ from workers.body.character import Character
 from workers.models import body_state
 from workers.models.vae import VAEController
 from workers.motion.library import MotionLibrary
-from workers.sim.env import BatchedSim, SimConfig, without_tracking_termination
+from workers.sim.env import SimConfig, Simulator, make_sim, without_tracking_termination
 from workers.tracking_goal import next_goal
 
 DEFAULT_START_CLIP = "humanoid3d_walk"
 
 # A policy maps the simulator's current state to actions [N, A]; it can stand in for the controller.
-Policy = Callable[[BatchedSim], np.ndarray]
+Policy = Callable[[Simulator], np.ndarray]
 
 
 @contextlib.contextmanager
@@ -50,7 +50,7 @@ def evaluation_mode(controller: torch.nn.Module | None) -> Iterator[None]:
             controller.train(was_training)
 
 
-def sim_features(sim: BatchedSim) -> torch.Tensor:
+def sim_features(sim: Simulator) -> torch.Tensor:
     """s [N, D] of the simulated characters, as the learners compute it (float32 body states)."""
     return body_state.features(torch.from_numpy(body_state.pack(sim.kin_state())))
 
@@ -58,7 +58,7 @@ def sim_features(sim: BatchedSim) -> torch.Tensor:
 def reference_targets(library: MotionLibrary) -> Policy:
     """A baseline policy: the PD targets of the reference's next pose (no feedback at all)."""
 
-    def policy(sim: BatchedSim) -> np.ndarray:
+    def policy(sim: Simulator) -> np.ndarray:
         target = library.state(sim.clip_id, sim.start_frame + sim.steps + 1)
         return sim.character.qpos_to_action(target.qpos)
 
@@ -113,7 +113,7 @@ def time_until_fall(
         raise ValueError(f"need num_rollouts >= 1 and max_seconds > 0, got {num_rollouts} and {max_seconds}")
     config = without_tracking_termination(sim_config)
     clip, frame = fall_start(library, start)
-    sim = BatchedSim(character, library, num_rollouts, config, seed=seed)
+    sim = make_sim(character, library, num_rollouts, config, seed=seed)
     sim.reset(np.arange(num_rollouts), np.full(num_rollouts, clip), np.full(num_rollouts, frame))
     generator = torch.Generator().manual_seed(seed)
     dt = 1.0 / config.control_hz
@@ -186,7 +186,7 @@ def tracking_error(
     config = without_tracking_termination(sim_config)
     clips, starts, steps = tracking_segments(library, clip_seconds, config.control_hz)
     n = len(clips)
-    sim = BatchedSim(character, library, n, config, seed=seed)
+    sim = make_sim(character, library, n, config, seed=seed)
     sim.reset(np.arange(n), clips, starts)
     total = np.zeros(n)
     with evaluation_mode(controller):
@@ -237,7 +237,7 @@ def random_sampling(
     usable[(library.offsets + library.num_frames - 1)[~library.loop & (library.num_frames > 1)]] = False
     rows = rng.choice(np.flatnonzero(usable), size=num_rollouts)
     clip_ids = np.searchsorted(library.offsets, rows, side="right") - 1
-    sim = BatchedSim(character, library, num_rollouts, config, seed=seed)
+    sim = make_sim(character, library, num_rollouts, config, seed=seed)
     sim.reset(np.arange(num_rollouts), clip_ids, rows - library.offsets[clip_ids])
     generator = torch.Generator().manual_seed(seed)
     roots = np.empty((steps + 1, num_rollouts, 2))

@@ -1,7 +1,7 @@
 """AMP's evaluation of an imitation policy: pose error after dynamic time warping (Peng et al. 2021, Table 3).
 
 `pose_error_episodes` runs `num_episodes` episodes as the environments of one
-`BatchedSim`, each from a reference state drawn from the library (reference state
+`Simulator`, each from a reference state drawn from the library (reference state
 initialisation, as in training), with the policy's deterministic action, for up
 to `max_seconds` or until the character falls (or a one-shot clip ends). Each
 episode's simulated poses are compared with the reference clip over the same
@@ -28,11 +28,11 @@ from workers.body.character import Character
 from workers.body.features import heading_inverse
 from workers.evaluation.pose_error import dtw_pose_error, eq10_dtw_pose_error, per_frame_pose_error, relative_positions
 from workers.motion.library import MotionLibrary
-from workers.sim.env import BatchedSim, SimConfig, without_tracking_termination
+from workers.sim.env import SimConfig, Simulator, make_sim, without_tracking_termination
 from workers.types import KinState
 
 # Maps the simulator and the environments' body states [M, B, 13] to actions [M, A].
-Actor = Callable[[BatchedSim, np.ndarray], np.ndarray]
+Actor = Callable[[Simulator, np.ndarray], np.ndarray]
 
 
 def _relative(kin: KinState) -> np.ndarray:
@@ -58,7 +58,7 @@ def pose_error_episodes(
     from workers.models import body_state
 
     config = without_tracking_termination(sim_config)
-    sim = BatchedSim(character, library, num_episodes, config, seed=seed)
+    sim = make_sim(character, library, num_episodes, config, seed=seed)
     steps = max(1, int(round(max_seconds * config.control_hz)))
     start_clip, start_frame = sim.clip_id.copy(), sim.start_frame.copy()
     sim_pos = np.zeros((steps, num_episodes, character.num_bodies - 1, 3))
@@ -116,7 +116,7 @@ def pose_error_episodes(
 def reference_actor(library: MotionLibrary) -> Actor:
     """PD targets of the reference's next frame: a baseline 'policy' that needs no learning."""
 
-    def act(sim: BatchedSim, bs: np.ndarray) -> np.ndarray:
+    def act(sim: Simulator, bs: np.ndarray) -> np.ndarray:
         ref = library.state(sim.clip_id, sim.start_frame + sim.steps + 1)
         return sim.character.qpos_to_action(ref.qpos)
 

@@ -33,7 +33,7 @@ if TYPE_CHECKING:
     from workers.body.character import Character
     from workers.models.vae import VAEController
     from workers.motion.library import MotionLibrary
-    from workers.sim.env import BatchedSim, SimConfig
+    from workers.sim.env import SimConfig, Simulator
 
 # The camera: distance (m), azimuth and elevation (degrees; azimuth 90 looks along +y, a side view of
 # the clips, which walk along x), and the height (m) it looks at, fixed so that a fall stays in frame.
@@ -84,13 +84,13 @@ def record_fall_rollouts(
     import torch
 
     from workers.evaluation.controller import evaluation_mode, fall_start, sim_features
-    from workers.sim.env import BatchedSim, without_tracking_termination
+    from workers.sim.env import make_sim, without_tracking_termination
 
     if num_rollouts < 1:
         return []
     config = without_tracking_termination(sim_config)
     clip, frame = fall_start(library)
-    sim = BatchedSim(character, library, num_rollouts, config, seed=seed)
+    sim = make_sim(character, library, num_rollouts, config, seed=seed)
     sim.reset(np.arange(num_rollouts), np.full(num_rollouts, clip), np.full(num_rollouts, frame))
     generator = torch.Generator().manual_seed(seed)
     steps = max(1, int(round(max_seconds * config.control_hz)))
@@ -125,13 +125,13 @@ def record_tracking(
 
     from workers.evaluation.controller import evaluation_mode, fall_start
     from workers.models import body_state
-    from workers.sim.env import BatchedSim, without_tracking_termination
+    from workers.sim.env import make_sim, without_tracking_termination
     from workers.tracking_goal import next_goal
 
     config = without_tracking_termination(sim_config)
     c = library.clip_id(clip) if clip is not None else fall_start(library)[0]
     steps = _steps(library, c, max_seconds, config.control_hz)
-    sim = BatchedSim(character, library, 1, config, seed=seed)
+    sim = make_sim(character, library, 1, config, seed=seed)
     sim.reset(np.zeros(1, int), np.array([c]), np.zeros(1, int))
     qpos, ref = [sim.kin_state().qpos[0]], [sim.reference_state().qpos[0]]
     with evaluation_mode(controller):
@@ -146,7 +146,7 @@ def record_tracking(
 
 
 def record_policy_episode(
-    act: Callable[[BatchedSim, np.ndarray], np.ndarray],
+    act: Callable[[Simulator, np.ndarray], np.ndarray],
     character: Character,
     library: MotionLibrary,
     max_seconds: float,
@@ -157,10 +157,10 @@ def record_policy_episode(
     start drawn by the simulator, with its reference, until `max_seconds`, `FALL_TAIL_S` after a fall or the
     clip's end."""
     from workers.models import body_state
-    from workers.sim.env import BatchedSim, without_tracking_termination
+    from workers.sim.env import make_sim, without_tracking_termination
 
     config = without_tracking_termination(sim_config)
-    sim = BatchedSim(character, library, 1, config, seed=seed)
+    sim = make_sim(character, library, 1, config, seed=seed)
     steps = max(1, int(round(max_seconds * config.control_hz)))
     tail = int(round(FALL_TAIL_S * config.control_hz))
     qpos, ref = [sim.kin_state().qpos[0]], [sim.reference_state().qpos[0]]

@@ -17,7 +17,7 @@ from workers.evaluation.imitation import Actor
 from workers.evaluation.pose_error import relative_positions
 from workers.models import body_state
 from workers.motion.library import MotionLibrary
-from workers.sim.env import BatchedSim, SimConfig, without_tracking_termination
+from workers.sim.env import SimConfig, make_sim, without_tracking_termination
 
 
 def tracking_steps(library: MotionLibrary, control_hz: float, seconds: float | None = None) -> np.ndarray:
@@ -74,7 +74,7 @@ def tracking_success(
     config = without_tracking_termination(sim_config)
     n = library.num_clips
     steps = tracking_steps(library, config.control_hz, seconds)  # [n]
-    sim = BatchedSim(character, library, n, config, seed=seed)
+    sim = make_sim(character, library, n, config, seed=seed)
     clips = np.arange(n)
     sim.reset(clips, clips, np.zeros(n, int))
     global_sum, local_sum = np.zeros(n), np.zeros(n)

@@ -32,7 +32,7 @@ from workers.goals import SuccessTracker
 from workers.losses.task import task_loss
 from workers.models import body_state
 from workers.motion.library import MotionLibrary
-from workers.sim.env import BatchedSim, SimConfig, without_tracking_termination
+from workers.sim.env import SimConfig, make_sim, without_tracking_termination
 from workers.task_policy import TaskRolloutPolicy
 
 
@@ -47,7 +47,7 @@ def evaluate_task_policy(
 ) -> dict[str, Any]:
     """Metrics and curves of the configured `policy` (skill set, weights loaded); see the module docstring."""
     config = replace(without_tracking_termination(sim_config), end_on_fall=True)
-    sim = BatchedSim(character, library, num_goals, config, seed=seed)
+    sim = make_sim(character, library, num_goals, config, seed=seed)
     task = policy.config.task
     stochastic, policy.stochastic = policy.stochastic, False
     trained, policy.config = policy.config, replace(policy.config, change_rate=0.0)

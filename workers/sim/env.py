@@ -1,4 +1,4 @@
-"""The batched simulator: N environments of the humanoid stepped together.
+"""The batched simulator on MuJoCo C: N environments of the humanoid stepped together.
 
 A control step applies the PD targets [N, 28] and advances every environment by
 K = sim_hz / control_hz physics steps; positions, rotations and velocities of
@@ -50,6 +50,13 @@ checked on its contact list. That is the test on rough terrain, whose floor is a
 height field (`workers.sim.terrain`); the ground there is the field and the
 plane beyond it, both allowed like the floor.
 
+What does not depend on the physics (resets to reference states, the reference
+bookkeeping, tracking failure, clip ends, time limits, the step's result, saving and
+restoring) is `workers.sim.base.Simulator`'s, shared with the MuJoCo Warp backend
+(`workers.sim.warp_sim.WarpSim`); `make_sim` builds the backend a `SimConfig` names.
+`SimConfig`, `StepResult` and `without_tracking_termination` live there too and are
+importable from here.
+
 Reset is reference state initialisation from the motion library; on rough
 terrain each reset character is raised just clear of the bumps under it
 (`terrain.reset_lift`). Termination:
@@ -61,108 +68,36 @@ further than `tracking_error_m` from the reference's for `tracking_error_s`), `c
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
-from functools import cached_property
-
 import mujoco
 import numpy as np
 from mujoco import batch as mj_batch
 
 from workers.body.character import Character
-from workers.body.features import state_features
-from workers.models.body_state import pack
 from workers.motion.library import MotionLibrary
-from workers.sim.terrain import TerrainConfig, ground_geoms, reset_lift, terrain_model
-from workers.types import KinState
+from workers.sim.base import BACKENDS, PhysicsArrays, SimConfig, Simulator, StepResult, without_tracking_termination
+
+__all__ = ["BACKENDS", "BatchedSim", "SimConfig", "Simulator", "StepResult", "make_sim", "without_tracking_termination"]
 
 # Slack (metres) of the floor-distance test that rules out fall contacts; only
 # environments closer than this (plus the geoms' margins) get their contacts read.
 FLOOR_SLACK_M = 0.01
-_YZX, _ZXY = [1, 2, 0], [2, 0, 1]  # component orders of a cross product
-BACKENDS = ("mujoco", "warp")
 
 
-@dataclass
-class SimConfig:
-    """Rates and termination rules of the batched simulator."""
-
-    # Physics rate. 480 Hz is PhysicsVAE's; see docs in the README for the stability measurement.
-    sim_hz: float = 480.0
-    # Policy rate; sim_hz must be a whole multiple of it.
-    control_hz: float = 30.0
-    # Bodies allowed to touch the ground; any other contact is a fall. Empty: never fall on contact.
-    allowed_contacts: tuple[str, ...] = ("right_ankle", "left_ankle")
-    # Whether a fall ends the episode; false (ControlVAE's collection) still reports it in StepResult.fell.
-    end_on_fall: bool = True
-    # Head error (metres) that, held for tracking_error_s seconds, ends an episode. 0 disables.
-    tracking_error_m: float = 0.5
-    tracking_error_s: float = 1.0
-    # Episode length cap in control steps; 0 means none.
-    max_episode_steps: int = 0
-    # Threads that step the environments (the caller's included). 1 by default: rollout workers
-    # share the machine's cores, and results are bit-identical at any thread count.
-    threads: int = 1
-    # The ground: flat (the character file's floor) or a rough height field (`workers.sim.terrain`).
-    terrain: TerrainConfig = field(default_factory=TerrainConfig)
-    # Physics: "mujoco" (MuJoCo C, this module) or "warp" (MuJoCo Warp, `workers.sim.warp_physics`; needs the
-    # warp extra, and BatchedSim does not run on it yet: docs/warp.md).
-    backend: str = "mujoco"
-
-    def __post_init__(self) -> None:
-        if self.backend not in BACKENDS:
-            raise ValueError(f"sim backend must be one of {BACKENDS}, got {self.backend!r}")
-        if self.backend == "warp":
-            from workers.sim.warp_physics import INSTALL_HINT, WarpUnavailable, warp_available
-
-            if not warp_available():
-                raise WarpUnavailable(f"sim backend 'warp' needs mujoco-warp and warp-lang: {INSTALL_HINT}")
-
-    @property
-    def substeps(self) -> int:
-        ratio = self.sim_hz / self.control_hz
-        if self.control_hz <= 0 or ratio < 1 or abs(ratio - round(ratio)) > 1e-6:
-            raise ValueError(
-                f"sim_hz ({self.sim_hz}) must be a positive whole multiple of control_hz ({self.control_hz})"
-            )
-        return int(round(ratio))
-
-
-def without_tracking_termination(config: SimConfig | None = None, keep_time_limit: bool = False) -> SimConfig:
-    """`config` (default `SimConfig()`) with no end on tracking failure (`tracking_error_m` = 0) and,
-    unless `keep_time_limit`, no episode cap (`max_episode_steps` = 0).
-
-    For runs that do not hold the character to its reference: the evaluations, which run each
-    episode for their own number of steps, and AMP, whose policy imitates a style, not the clip."""
+def make_sim(
+    character: Character,
+    library: MotionLibrary,
+    num_envs: int,
+    config: SimConfig | None = None,
+    seed: int = 0,
+) -> Simulator:
+    """The simulator `config.backend` names (default `SimConfig()`): `BatchedSim` (MuJoCo C) or
+    `workers.sim.warp_sim.WarpSim` (MuJoCo Warp, imported only then)."""
     config = config or SimConfig()
-    time_limit = config.max_episode_steps if keep_time_limit else 0
-    return replace(config, tracking_error_m=0.0, max_episode_steps=time_limit)
+    if config.backend == "warp":
+        from workers.sim.warp_sim import WarpSim
 
-
-@dataclass
-class StepResult:
-    """What one control step returns; arrays have N rows. `state` is computed when first read."""
-
-    ref_state: np.ndarray  # [N, D] s of the reference at the same time
-    kin: KinState  # raw simulated state (the reference's: BatchedSim.reference_state())
-    fell: np.ndarray  # [N] bool
-    tracking_failed: np.ndarray  # [N] bool
-    clip_ended: np.ndarray  # [N] bool
-    timeout: np.ndarray  # [N] bool
-    end_on_fall: bool = True  # whether `fell` ends the episode
-    done: np.ndarray = field(init=False)
-
-    def __post_init__(self) -> None:
-        self.done = self.tracking_failed | self.clip_ended | self.timeout
-        if self.end_on_fall:
-            self.done = self.done | self.fell
-
-    @cached_property
-    def state(self) -> np.ndarray:
-        """[N, D] s of the simulated characters (from `kin`, a copy: the same whenever it is read).
-
-        Lazy because most callers observe through the policy's own features, and computing
-        s for every step cost ~4% of a rollout worker's control step at 8 environments."""
-        return state_features(self.kin)
+        return WarpSim(character, library, num_envs, config, seed=seed)
+    return BatchedSim(character, library, num_envs, config, seed=seed)
 
 
 class EnvState:
@@ -188,40 +123,13 @@ class EnvState:
         return self._sim.qacc_warmstart[self._i]
 
 
-class BatchedSim:
-    def __init__(
-        self,
-        character: Character,
-        library: MotionLibrary,
-        num_envs: int,
-        config: SimConfig | None = None,
-        seed: int = 0,
-    ):
-        if num_envs < 1:
-            raise ValueError(f"num_envs must be at least 1, got {num_envs}")
-        self.character = character
-        self.library = library
-        self.config = config or SimConfig()
-        if self.config.backend != "mujoco":
-            raise NotImplementedError(
-                f"BatchedSim runs on MuJoCo C only so far (sim backend {self.config.backend!r}: docs/warp.md)"
-            )
-        if self.config.threads < 1:
-            raise ValueError(f"threads must be at least 1, got {self.config.threads}")
-        self.substeps = self.config.substeps
-        self._rough = self.config.terrain.kind == "rough"
-        if self._rough and character.root_dofs == 0:
-            raise ValueError("rough terrain needs a character with a free root (fixed_root=False)")
-        # Rough: the character's model with the height field, compiled anew (Character.model is untouched).
-        self.model = terrain_model(character.spec(), self.config.terrain) if self._rough else character.model
-        self.model.opt.timestep = 1.0 / self.config.sim_hz
-        lib_dt = float(np.mean(library.dt))
-        if abs(lib_dt * self.config.control_hz - 1.0) > 0.02:
-            raise ValueError(
-                f"library sampled at {1 / lib_dt:.2f} Hz, simulator controls at {self.config.control_hz} Hz"
-            )
-        self.num_envs = num_envs
-        self.rng = np.random.default_rng(seed)
+class BatchedSim(Simulator):
+    """N environments in MuJoCo C (`mujoco.batch`); the interface is `Simulator`'s (float64 throughout)."""
+
+    backend = "mujoco"
+
+    def _build_physics(self) -> None:
+        num_envs = self.num_envs
         # The batch copies the model: later edits of character.model do not reach it.
         b = mj_batch.Batch(self.model, num_envs, nthread=self.config.threads, persistent=True)
         self._batch = b
@@ -234,155 +142,37 @@ class BatchedSim:
         self._ncon = b.bind("ncon")
         self._scratch = mujoco.MjData(self.model)  # where an environment is copied to read its contacts
         # Was a list of MjData; callers that read or set d.qpos, d.qvel, d.ctrl or d.qacc_warmstart
-        # (the rollout worker's state_dict) keep working. A whole MjData: get_data(i).
+        # keep working. A whole MjData: get_data(i).
         self.datas = [EnvState(self, i) for i in range(num_envs)]
-        self._fell = np.zeros(num_envs, bool)
-        self.clip_id = np.zeros(num_envs, int)
-        self.start_frame = np.zeros(num_envs, int)
-        self.steps = np.zeros(num_envs, int)
-        self._bad_head_steps = np.zeros(num_envs, int)
-        allowed = [self.model.geom(n).id for n in self.config.allowed_contacts] + ground_geoms(self.model)
-        self._fall_geom = np.ones(self.model.ngeom, bool)  # lookup: does touching this geom end the episode
-        self._fall_geom[allowed] = False
-        self._fall_on_contact = len(self.config.allowed_contacts) > 0
         self._floor_test = self._make_floor_test() if self._fall_on_contact else None
         if self._floor_test is not None:
             self._geom_xpos, self._geom_xmat = b.bind("geom_xpos"), b.bind("geom_xmat")
-        self._head_limit_steps = int(np.ceil(self.config.tracking_error_s * self.config.control_hz))
-        self.reset()
 
-    # Sizes -----------------------------------------------------------------
-    @property
-    def action_dim(self) -> int:
-        return self.character.num_actions
-
-    @property
-    def state_dim(self) -> int:
-        return 16 * self.character.num_bodies + 3
-
-    # Reset -----------------------------------------------------------------
-    def reset(
-        self,
-        env_ids: np.ndarray | None = None,
-        clip_ids: np.ndarray | None = None,
-        frames: np.ndarray | None = None,
-    ) -> np.ndarray:
-        """Reference state initialisation; states s [len(env_ids), D] of the reset environments.
-
-        Without clip_ids/frames the start is drawn from the library's start weights.
-        """
-        env_ids = np.arange(self.num_envs) if env_ids is None else np.asarray(env_ids, dtype=int)
-        if len(env_ids) == 0:
-            return np.zeros((0, self.state_dim), np.float32)
-        if clip_ids is None or frames is None:
-            clip_ids, frames = self.library.sample_starts(len(env_ids), self.rng)
-        ref = self.library.state(clip_ids, frames)
-        qpos = ref.qpos
-        if self._rough:
-            # The reference was recorded on flat ground: raise each character just clear of the bumps.
-            qpos = qpos.copy()
-            qpos[:, 2] += reset_lift(self.config.terrain, self.model, ref.xpos, ref.xquat)
-        self.set_state(env_ids, qpos, ref.qvel)
-        self.clip_id[env_ids] = clip_ids
-        self.start_frame[env_ids] = frames
-        self.steps[env_ids] = 0
-        self._bad_head_steps[env_ids] = 0
-        if self._rough:  # raised: the precomputed s has the reference's heights
-            return state_features(self.kin_state()[env_ids])
-        # The environments now hold exactly the reference state, whose s is precomputed.
-        return self.library.features(clip_ids, frames)
-
-    def set_state(self, env_ids: np.ndarray, qpos: np.ndarray, qvel: np.ndarray) -> None:
-        """Put environments into the given generalised state (positions and contacts computed)."""
-        env_ids = np.asarray(env_ids, dtype=int)
-        if len(env_ids) == 0:
-            return
+    def _set_physics_state(self, env_ids: np.ndarray, qpos: np.ndarray, qvel: np.ndarray, ctrl: np.ndarray) -> None:
         # Everything a step reads from the past: time, state, controls and the solver's warm
         # start (zeroed so that a reset environment's future depends on its state only).
         self._time[env_ids] = 0.0
         self._qpos[env_ids] = qpos
         self._qvel[env_ids] = qvel
-        self._ctrl[env_ids] = self.character.qpos_to_action(np.asarray(qpos))
+        self._ctrl[env_ids] = ctrl
         self._warmstart[env_ids] = 0.0
         # mj_forward, as MjData users would call it; the next step continues from its stages.
         self._batch.forward(np.unique(env_ids), stage=mujoco.mjtStage.mjSTAGE_ACC)
 
-    # Step ------------------------------------------------------------------
-    def step(self, actions: np.ndarray) -> StepResult:
-        """Apply PD targets [N, 28] for one control step."""
-        actions = np.asarray(actions, dtype=np.float64)
-        if actions.shape != (self.num_envs, self.action_dim):
-            raise ValueError(f"actions must be [{self.num_envs}, {self.action_dim}], got {list(actions.shape)}")
+    def _advance(self, actions: np.ndarray) -> None:
         self._ctrl[:] = actions
         self._batch.step(nstep=self.substeps, stage=mujoco.mjtStage.mjSTAGE_VEL)
-        self.steps += 1
-        kin = self.kin_state()
-        frames = self.start_frame + self.steps
-        if self.config.tracking_error_m > 0:
-            head = self.character.head_body
-            ref_head = self.library.body_positions(self.clip_id, frames, head)
-            bad = np.linalg.norm(kin.xpos[:, head] - ref_head, axis=-1) > self.config.tracking_error_m
-            self._bad_head_steps = np.where(bad, self._bad_head_steps + 1, 0)
-            tracking_failed = self._bad_head_steps >= self._head_limit_steps
-        else:
-            tracking_failed = np.zeros(self.num_envs, bool)
-        clip_ended = self.library.is_last_frame(self.clip_id, frames)
-        cap = self.config.max_episode_steps
-        timeout = self.steps >= cap if cap > 0 else np.zeros(self.num_envs, bool)
-        self._fell = self._contact_falls() if self._fall_on_contact else np.zeros(self.num_envs, bool)
-        return StepResult(
-            ref_state=self.library.features(self.clip_id, frames),
-            kin=kin,
-            fell=self._fell.copy(),
-            tracking_failed=tracking_failed,
-            clip_ended=clip_ended,
-            timeout=timeout,
-            end_on_fall=self.config.end_on_fall,
-        )
 
-    def switch_reference(self, env_ids: np.ndarray, clip_ids: np.ndarray, frames: np.ndarray) -> None:
-        """Give environments a new reference (clip, frame) without touching their bodies (ControlVAE's
-        trajectory sampler, §3.4.4): the episode goes on, its step count too, and the head-error count
-        starts over. `start_frame` becomes the offset that puts `start_frame + steps` on `frames`."""
-        env_ids = np.asarray(env_ids, dtype=int)
-        self.clip_id[env_ids] = clip_ids
-        self.start_frame[env_ids] = np.asarray(frames, int) - self.steps[env_ids]
-        self._bad_head_steps[env_ids] = 0
-
-    # State access ----------------------------------------------------------
-    def kin_state(self) -> KinState:
-        """The simulated state of all environments (copies)."""
-        xpos = self._xpos[:, 1:]
-        cvel = self._cvel[:, 1:]
-        w = cvel[..., :3]
-        # cvel's linear part is at the root's subtree centre of mass; moved to each body's origin:
-        # v + w x r. The cross product is written out (same products and order as np.cross,
-        # so the same bits) because np.cross costs several times more NumPy calls.
-        r = xpos - self._subtree_com[:, 1, None, :]
-        lin = cvel[..., 3:] + (w[..., _YZX] * r[..., _ZXY] - w[..., _ZXY] * r[..., _YZX])
-        return KinState(self._qpos.copy(), self._qvel.copy(), xpos.copy(), self._xquat[:, 1:].copy(), lin, w.copy())
-
-    def reference_state(self) -> KinState:
-        """The reference state at each environment's current time."""
-        return self.library.state(self.clip_id, self.start_frame + self.steps)
-
-    def reference_next_features(self, env_ids: np.ndarray | None = None) -> np.ndarray:
-        """s̃_{t+1} [N, D] (rows `env_ids` only, when given): the reference's state features one control
-        step after each environment's current time, as the library stores them (what a tracking policy
-        observes and the VAE's posterior reads)."""
-        ids = slice(None) if env_ids is None else env_ids
-        return self.library.features(self.clip_id[ids], self.start_frame[ids] + self.steps[ids] + 1)
-
-    def reference_next_body_states(self, env_ids: np.ndarray | None = None) -> np.ndarray:
-        """The reference's body states [N, B, 13] (float32, `workers.models.body_state.pack`) one control step
-        after each environment's current time (rows `env_ids` only, when given)."""
-        ids = slice(None) if env_ids is None else env_ids
-        return pack(self.library.state(self.clip_id[ids], self.start_frame[ids] + self.steps[ids] + 1))
+    def _arrays(self) -> PhysicsArrays:
+        return PhysicsArrays(self._qpos, self._qvel, self._xpos, self._xquat, self._cvel, self._subtree_com)
 
     @property
     def qacc_warmstart(self) -> np.ndarray:
         """[N, nv] the solver's warm start of each environment, a live view: writes set it."""
         return self._warmstart
+
+    def _set_warmstart(self, values: np.ndarray) -> None:
+        self._warmstart[:] = values
 
     def warning_counts(self, warning: mujoco.mjtWarning = mujoco.mjtWarning.mjWARN_BADQACC) -> np.ndarray:
         """[N] how often each environment raised this MuJoCo warning since the simulator was made.

@@ -1,13 +1,15 @@
 """The humanoid's physics in MuJoCo Warp: nworld copies stepped together on a Warp device.
 
-The first piece of the `warp` simulator backend (docs/warp.md). `WarpPhysics` holds
+The physics of the `warp` simulator backend (docs/warp.md). `WarpPhysics` holds
 nworld copies of one MjModel in MuJoCo Warp (`mujoco_warp.put_model`, one
 `mujoco_warp.Data` made with `make_data(nworld=...)`) on a Warp device: "cpu" or
-"cuda" / "cuda:N". It sets the state (qpos, qvel) of chosen worlds, sets controls,
-advances every world by K physics steps and exposes qpos, qvel, body positions
-(xpos) and body quaternions (xquat, w x y z as in MuJoCo) as torch tensors. It is
-physics only: references, resets to reference states, falls, clip switches and
-terrain are still `workers.sim.env.BatchedSim`'s (MuJoCo C).
+"cuda" / "cuda:N". It sets the state (qpos, qvel) of chosen worlds, sets controls and
+the solver's warm start, advances every world by K physics steps and exposes qpos, qvel,
+qacc, the warm start, body positions (xpos), body quaternions (xquat, w x y z as in
+MuJoCo), body velocities (cvel) and subtree centres of mass as torch tensors, and the
+contacts of every world (`contacts`). It is physics only: references, resets to
+reference states, falls, clip switches and terminations are `workers.sim.warp_sim.WarpSim`'s
+(`Simulator`'s interface, the same as `workers.sim.env.BatchedSim` on MuJoCo C).
 
 A physics step is `mujoco_warp.step`, MuJoCo's `mj_step`: forward dynamics at the
 current state, then the model's integrator (implicitfast for our humanoid). A control
@@ -30,11 +32,12 @@ model's) or condim (elliptic), one per limited joint and per dof with friction l
 and 6 per equality: 128 for our humanoid. Larger values only cost memory and a little
 time; MuJoCo Warp's own defaults are guesses from nv that do not look at the geoms.
 
-Torch. The tensors `qpos`, `qvel`, `xpos`, `xquat` and `ctrl` are `warp.to_torch`
-views of MuJoCo Warp's arrays: no copy, on the same device, float32, updated in place
-by every step (clone one to keep it). The setters copy: NumPy or torch input is
-converted to float32 on the device (one host-to-device copy from NumPy on a GPU).
-`overflowed()` copies nworld integers to the host. On a GPU, `step` and `set_state`
+Torch. The tensors `qpos`, `qvel`, `qacc`, `qacc_warmstart`, `xpos`, `xquat`, `cvel`,
+`subtree_com` and `ctrl` are `warp.to_torch` views of MuJoCo Warp's arrays: no copy, on
+the same device, float32, updated in place by every step (clone one to keep it). The
+setters copy: NumPy or torch input is converted to float32 on the device (one
+host-to-device copy from NumPy on a GPU). `overflowed()` copies nworld integers to the
+host, `contacts()` the current contacts' worlds and geoms. On a GPU, `step` and `set_state`
 synchronise the device before they return, so torch reads after them see the new state
 whatever stream torch uses.
 
@@ -65,6 +68,9 @@ _PLANE_CONTACTS = {
     mujoco.mjtGeom.mjGEOM_BOX: 4,
 }
 _PAIR_CONTACTS = 8
+# Contact.type bit of a contact for the constraint solver (mujoco_warp's ContactType.CONSTRAINT, not exported);
+# the others are collision-sensor contacts, which MuJoCo C does not list in MjData.contact.
+_CONSTRAINT_CONTACT = 1
 _PRIMITIVES = set(_PLANE_CONTACTS) | {mujoco.mjtGeom.mjGEOM_PLANE}
 
 
@@ -176,6 +182,14 @@ class WarpPhysics:
         self._warmstart = wp.to_torch(self.d.qacc_warmstart)
         self._xpos = wp.to_torch(self.d.xpos)
         self._xquat = wp.to_torch(self.d.xquat)
+        self._qacc = wp.to_torch(self.d.qacc)
+        self._cvel = wp.to_torch(self.d.cvel)
+        self._subtree_com = wp.to_torch(self.d.subtree_com)
+        # Contacts of all worlds in one pool: the first nacon rows (at most naconmax) are this state's.
+        self._nacon = wp.to_torch(self.d.nacon)
+        self._contact_world = wp.to_torch(self.d.contact.worldid)
+        self._contact_geom = wp.to_torch(self.d.contact.geom)
+        self._contact_type = wp.to_torch(self.d.contact.type)
         self._sync()
 
     # State -----------------------------------------------------------------
@@ -203,6 +217,37 @@ class WarpPhysics:
     def xquat(self) -> torch.Tensor:
         """[nworld, nbody, 4] body orientations, w x y z (a live view)."""
         return self._xquat
+
+    @property
+    def qacc(self) -> torch.Tensor:
+        """[nworld, nv] generalised accelerations of the last step or forward (a live view)."""
+        return self._qacc
+
+    @property
+    def qacc_warmstart(self) -> torch.Tensor:
+        """[nworld, nv] the solver's warm start, the next step's first guess of qacc (a live view; writes set it)."""
+        return self._warmstart
+
+    @property
+    def cvel(self) -> torch.Tensor:
+        """[nworld, nbody, 6] body velocities, com-based, rotation then translation, as MuJoCo's cvel (a live view)."""
+        return self._cvel
+
+    @property
+    def subtree_com(self) -> torch.Tensor:
+        """[nworld, nbody, 3] centre of mass of each body's subtree (a live view)."""
+        return self._subtree_com
+
+    def contacts(self) -> tuple[np.ndarray, np.ndarray]:
+        """(world [n], geom [n, 2]): the contacts of the current state, every world's, as NumPy copies.
+
+        The constraint contacts of MuJoCo Warp's contact pool (those MuJoCo C lists in MjData.contact),
+        in MuJoCo Warp's order (by collision pair, not by world). What did not fit in the pool is
+        missing: see `overflowed()`. On a GPU this copies the n rows to the host."""
+        n = min(int(self._nacon[0]), self.d.naconmax)
+        keep = (self._contact_type[:n] & _CONSTRAINT_CONTACT) != 0
+        world, geom = self._contact_world[:n][keep], self._contact_geom[:n][keep]
+        return world.cpu().numpy().astype(np.int64), geom.cpu().numpy().astype(np.int64)
 
     @property
     def time(self) -> torch.Tensor:
@@ -235,6 +280,10 @@ class WarpPhysics:
         else:
             ids = self._ids(world_ids)
             self._ctrl[ids] = self._tensor(ctrl, (len(ids), self.nu))
+
+    def set_qacc_warmstart(self, values: object) -> None:
+        """Set the solver's warm start [nworld, nv] of every world (as saved from `qacc_warmstart`)."""
+        self._warmstart[:] = self._tensor(values, (self.nworld, self.nv))
 
     def step(self, nstep: int = 1) -> None:
         """Advance every world by `nstep` physics steps under the current controls (held for all of them).

@@ -1,0 +1,140 @@
+"""The batched simulator on MuJoCo Warp: `workers.sim.base.Simulator`'s interface over `WarpPhysics`.
+
+`WarpSim` is what `workers.sim.env.make_sim` builds for `SimConfig(backend="warp")`: the same
+constructor, methods and results as `BatchedSim` (MuJoCo C), with the N environments as
+the worlds of one `WarpPhysics` on `SimConfig.device` ("cpu", "cuda" or "cuda:N"). What does
+not depend on the physics (resets to reference states, reference bookkeeping, tracking
+failure, clip ends and switches, time limits, the step's result, save and restore) is the
+shared `Simulator`'s, so it is the same code on both backends.
+
+A control step sets the controls of every world and advances them by K physics steps, split
+as BatchedSim splits it (`WarpPhysics.step`). NumPy in and out for now: the body arrays are
+copied from the device after each step into the float64 arrays BatchedSim returns, but MuJoCo
+Warp computes in float32, so they hold float32 values (tests/unit/test_warp_sim.py and
+docs/warp.md compare the two backends). A reset environment holds the float32 rounding of the
+reference state; the state features `reset` returns are the library's precomputed ones, as on
+MuJoCo C.
+
+Falls follow BatchedSim's rule: a contact of the new state that involves any geom but the floor
+and the allowed ones (`SimConfig.allowed_contacts`). They are read from MuJoCo Warp's contact
+pool (`WarpPhysics.contacts`: world and geom pair of every contact of every world), which is
+small (29 contacts per world at most for our humanoid), so no floor-distance pre-test is needed.
+
+What MuJoCo C does that MuJoCo Warp does not, and what this class does instead:
+- Unstable worlds. MuJoCo C resets an environment to the model's default pose, mid-step, when its
+  positions, velocities or accelerations are non-finite or huge (> mjMAXVAL), and counts a warning
+  (mjWARN_BADQPOS, _BADQVEL, _BADQACC). MuJoCo Warp carries on with NaNs. `WarpSim` checks the three
+  after every control step, resets the worlds that fail to the model's qpos0 at rest (zero controls
+  and warm start) and counts the same warnings (`warning_counts`); the reset comes at the end of the
+  control step instead of within it.
+- Rough terrain is refused (`terrain.kind` must be "flat"): MuJoCo Warp's height-field collider keeps
+  at most 4 contacts per geom pair where MuJoCo C keeps up to 50, and `contact_capacity` has no bound
+  for height fields, so the physics would not be MuJoCo C's.
+- `datas` (BatchedSim's per-environment views, which nothing in the project reads any more) is not
+  provided; `get_data(i)` copies a world into a MuJoCo C MjData.
+"""
+
+from __future__ import annotations
+
+import mujoco
+import numpy as np
+import torch
+
+from workers.sim.base import PhysicsArrays, Simulator
+from workers.sim.warp_physics import WarpPhysics
+
+_UNSTABLE = {  # MuJoCo C's warning for a non-finite or huge value of each field
+    "qpos": mujoco.mjtWarning.mjWARN_BADQPOS,
+    "qvel": mujoco.mjtWarning.mjWARN_BADQVEL,
+    "qacc": mujoco.mjtWarning.mjWARN_BADQACC,
+}
+_FULL = (mujoco.mjtWarning.mjWARN_CONTACTFULL, mujoco.mjtWarning.mjWARN_CNSTRFULL)
+
+
+class WarpSim(Simulator):
+    """N environments in MuJoCo Warp on `config.device`; the interface is `Simulator`'s (see the module)."""
+
+    backend = "warp"
+
+    def _check_config(self) -> None:
+        super()._check_config()
+        kind = self.config.terrain.kind
+        if kind != "flat":
+            raise NotImplementedError(
+                f"terrain.kind={kind!r} does not run on sim backend 'warp': MuJoCo Warp's height-field collider "
+                "keeps at most 4 contacts per geom pair (MuJoCo C up to 50) and contact_capacity has no bound for "
+                "height fields; use terrain.kind='flat' or sim backend 'mujoco' (docs/warp.md)"
+            )
+
+    def _build_physics(self) -> None:
+        self.physics = WarpPhysics(self.model, self.num_envs, device=self.config.device)
+        self._warnings = np.zeros((self.num_envs, int(mujoco.mjtWarning.mjNWARNING)), int)
+
+    def _set_physics_state(self, env_ids: np.ndarray, qpos: np.ndarray, qvel: np.ndarray, ctrl: np.ndarray) -> None:
+        self.physics.set_ctrl(ctrl, env_ids)
+        self.physics.set_state(env_ids, qpos, qvel)  # zero time and warm start, forward dynamics
+
+    def _advance(self, actions: np.ndarray) -> None:
+        self.physics.set_ctrl(actions)
+        self.physics.step(self.substeps)
+        self._reset_unstable()
+
+    def _reset_unstable(self) -> None:
+        """Reset worlds with a non-finite or huge qpos, qvel or qacc to qpos0 at rest, counting MuJoCo's warning."""
+        p = self.physics
+        bad = {}
+        for name, warning in _UNSTABLE.items():
+            values = getattr(p, name)
+            ok = (torch.isfinite(values) & (values.abs() <= mujoco.mjMAXVAL)).all(dim=1)
+            bad[warning] = (~ok).cpu().numpy()
+        unstable = np.logical_or.reduce(list(bad.values()))
+        if not unstable.any():
+            return
+        for warning, rows in bad.items():
+            self._warnings[rows, int(warning)] += 1
+        ids = np.flatnonzero(unstable)
+        p.set_ctrl(np.zeros((len(ids), p.nu)), ids)
+        p.set_state(ids, np.repeat(self.model.qpos0[None], len(ids), 0))
+
+    def _arrays(self) -> PhysicsArrays:
+        p = self.physics
+        return PhysicsArrays(*(_host(t) for t in (p.qpos, p.qvel, p.xpos, p.xquat, p.cvel, p.subtree_com)))
+
+    def _contact_falls(self) -> np.ndarray:
+        world, geom = self.physics.contacts()
+        fell = np.zeros(self.num_envs, bool)
+        hit = ((geom >= 0) & self._fall_geom[geom]).any(axis=1)  # geom -1: a flex (none in our models)
+        fell[world[hit]] = True
+        return fell
+
+    @property
+    def qacc_warmstart(self) -> np.ndarray:
+        """[N, nv] float32, the solver's warm start of each environment: on Warp's CPU device a live view
+        (writes set it), on a GPU a copy (set it through `restore_state`)."""
+        return self.physics.qacc_warmstart.detach().cpu().numpy()
+
+    def _set_warmstart(self, values: np.ndarray) -> None:
+        self.physics.set_qacc_warmstart(np.asarray(values))
+
+    def warning_counts(self, warning: mujoco.mjtWarning = mujoco.mjtWarning.mjWARN_BADQACC) -> np.ndarray:
+        """[N] how often each environment was found unstable with this warning since the simulator was made.
+
+        MuJoCo Warp keeps no warning counters. mjWARN_BADQPOS, _BADQVEL and _BADQACC count this class's
+        own resets of unstable worlds (checked after each control step, see the module); mjWARN_CONTACTFULL
+        and mjWARN_CNSTRFULL are 1 for a world whose contacts or constraint rows overflowed MuJoCo Warp's
+        capacity since the simulator was made (`WarpPhysics.overflowed`), else 0; other warnings are 0."""
+        if warning in _FULL:
+            return self.physics.overflowed().astype(int)
+        return self._warnings[:, int(warning)].copy()
+
+    def get_data(self, i: int) -> mujoco.MjData:
+        """A MuJoCo C MjData with environment i's state and computed quantities (a copy; float32 values widened)."""
+        return self.physics.get_data(int(i))
+
+    def overflowed(self) -> np.ndarray:
+        """[N] bool: environments whose contacts or constraint rows did not fit (`WarpPhysics.overflowed`)."""
+        return self.physics.overflowed()
+
+
+def _host(t: torch.Tensor) -> np.ndarray:
+    return t.detach().cpu().numpy().astype(np.float64)
