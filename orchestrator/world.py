@@ -44,8 +44,15 @@ def load_character_and_library(cfg: Config) -> tuple[Character, MotionLibrary]:
 
 
 def evaluation_sim_config(cfg: Config) -> SimConfig:
-    """The simulator as evaluation (and rendering) runs it: the character's rates, the terrain, falls detected."""
-    return SimConfig(sim_hz=cfg.character.sim_hz, control_hz=cfg.character.control_hz, terrain=cfg.terrain)
+    """The simulator as evaluation (and rendering) runs it: the character's rates, the terrain, the engine and its
+    device (`sim`), falls detected."""
+    return SimConfig(
+        sim_hz=cfg.character.sim_hz,
+        control_hz=cfg.character.control_hz,
+        terrain=cfg.terrain,
+        backend=cfg.sim.backend,
+        device=cfg.sim.device,
+    )
 
 
 def collection_sim_config(cfg: Config) -> SimConfig:

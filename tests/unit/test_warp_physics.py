@@ -1,5 +1,6 @@
 """workers.sim.warp_physics: MuJoCo Warp on Warp's CPU device against MuJoCo C, from the same states
-under the same controls.
+under the same controls (on a GPU with MOCAP_WARP_DEVICE=cuda), and the captured graphs against direct
+launches.
 
 The first test to step compiles MuJoCo Warp's kernels (36-60 s on two cores; Warp caches them in
 its kernel cache for later runs), hence `slow`. Tolerances: over the two control steps (32 physics
@@ -11,6 +12,7 @@ count, control or timestep would give (1e-3 and more after one control step).
 
 from __future__ import annotations
 
+import os
 import re
 import sys
 
@@ -24,6 +26,7 @@ pytest.importorskip("mujoco_warp")
 from workers.sim.warp_physics import INSTALL_HINT, WarpPhysics, WarpUnavailable, contact_capacity  # noqa: E402
 
 SUBSTEPS = 16  # one control step at 480/30 Hz
+DEVICE = os.environ.get("MOCAP_WARP_DEVICE", "cpu")  # scripts/device-warp.sh runs these on cuda
 POS_TOL = 1e-5  # qpos, xpos, xquat (metres, radians, quaternion components)
 VEL_TOL = 5e-4  # qvel (m/s, rad/s)
 
@@ -35,7 +38,7 @@ def model(character):
 
 @pytest.fixture(scope="module")
 def sim(model):
-    return WarpPhysics(model, nworld=4, device="cpu")
+    return WarpPhysics(model, nworld=4, device=DEVICE)
 
 
 def start_states(model, walk_run):
@@ -78,17 +81,17 @@ def test_state_set_is_state_read(sim, model, walk_run):
     sim.set_state(range(4), np.repeat(model.qpos0[None], 4, 0), np.zeros((4, model.nv)))
     sim.set_state([3, 1], qpos[[0, 2]], qvel[[0, 2]])
     f32 = torch.float32
-    assert torch.equal(sim.qpos[3], torch.as_tensor(qpos[0], dtype=f32))
-    assert torch.equal(sim.qvel[1], torch.as_tensor(qvel[2], dtype=f32))
+    assert torch.equal(sim.qpos[3].cpu(), torch.as_tensor(qpos[0], dtype=f32))
+    assert torch.equal(sim.qvel[1].cpu(), torch.as_tensor(qvel[2], dtype=f32))
     # The others are untouched.
     for w in (0, 2):
-        assert torch.equal(sim.qpos[w], torch.as_tensor(model.qpos0, dtype=f32))
-        assert torch.equal(sim.qvel[w], torch.zeros(model.nv))
+        assert torch.equal(sim.qpos[w].cpu(), torch.as_tensor(model.qpos0, dtype=f32))
+        assert torch.equal(sim.qvel[w].cpu(), torch.zeros(model.nv))
     # Body positions and orientations (w x y z) are those of the new states, as MuJoCo C computes them.
     for w, i in ((3, 0), (1, 2)):
         d = c_data(model, qpos[i], qvel[i])
-        np.testing.assert_allclose(sim.xpos[w].numpy(), d.xpos, atol=POS_TOL)
-        np.testing.assert_allclose(sim.xquat[w].numpy(), d.xquat, atol=POS_TOL)
+        np.testing.assert_allclose(sim.xpos[w].cpu().numpy(), d.xpos, atol=POS_TOL)
+        np.testing.assert_allclose(sim.xquat[w].cpu().numpy(), d.xquat, atol=POS_TOL)
     assert sim.xpos.shape == (4, model.nbody, 3) and sim.xquat.shape == (4, model.nbody, 4)
     # Zero-copy: the tensors are views of MuJoCo Warp's arrays.
     assert sim.qpos.data_ptr() == sim.d.qpos.ptr and sim.xpos.data_ptr() == sim.d.xpos.ptr
@@ -114,13 +117,44 @@ def test_matches_mujoco_c_over_two_control_steps(sim, model, character, walk_run
             mujoco.mj_step(model, d, nstep=SUBSTEPS)
             mujoco.mj_step1(model, d)  # positions of the new state, as WarpPhysics.step leaves them
             ncon += d.ncon
-        np.testing.assert_allclose(sim.time.numpy(), (t + 1) * SUBSTEPS * model.opt.timestep, rtol=1e-5)
+        np.testing.assert_allclose(sim.time.cpu().numpy(), (t + 1) * SUBSTEPS * model.opt.timestep, rtol=1e-5)
         for w, d in enumerate(datas):
-            np.testing.assert_allclose(sim.qpos[w].numpy(), d.qpos, atol=POS_TOL, err_msg=f"world {w}, step {t}")
-            np.testing.assert_allclose(sim.qvel[w].numpy(), d.qvel, atol=VEL_TOL, err_msg=f"world {w}, step {t}")
-            np.testing.assert_allclose(sim.xpos[w].numpy(), d.xpos, atol=POS_TOL, err_msg=f"world {w}, step {t}")
-            np.testing.assert_allclose(sim.xquat[w].numpy(), d.xquat, atol=POS_TOL, err_msg=f"world {w}, step {t}")
+            np.testing.assert_allclose(sim.qpos[w].cpu().numpy(), d.qpos, atol=POS_TOL, err_msg=f"world {w}, step {t}")
+            np.testing.assert_allclose(sim.qvel[w].cpu().numpy(), d.qvel, atol=VEL_TOL, err_msg=f"world {w}, step {t}")
+            np.testing.assert_allclose(sim.xpos[w].cpu().numpy(), d.xpos, atol=POS_TOL, err_msg=f"world {w}, step {t}")
+            np.testing.assert_allclose(
+                sim.xquat[w].cpu().numpy(), d.xquat, atol=POS_TOL, err_msg=f"world {w}, step {t}"
+            )
     assert ncon > 0  # the comparison covered contacts with the floor
     assert not sim.overflowed().any()
     # The worlds moved (a step that did nothing would not be within the tolerance of MuJoCo C either).
-    assert np.abs(sim.qpos.numpy() - qpos).max() > 100 * POS_TOL
+    assert np.abs(sim.qpos.cpu().numpy() - qpos).max() > 100 * POS_TOL
+
+
+@pytest.mark.slow
+def test_graph_replay_steps_as_direct_launches_do(sim, model, character, walk_run):
+    """`sim` replays captured graphs (the default); a twin launches every kernel from Python. The same states,
+    controls and steps (a state set between them replays the captured forward pass) give the same states: to
+    the bit on the CPU, where kernels run in a fixed order; within float rounding on a GPU."""
+    qpos, qvel, clips, frames = start_states(model, walk_run)
+    direct = WarpPhysics(model, nworld=4, device=DEVICE, graphs=False)
+    exact = direct.device.is_cpu
+    for t in range(3):
+        if t == 1:  # a mid-run reset of two worlds
+            for p in (sim, direct):
+                p.set_state([0, 2], qpos[[1, 3]], qvel[[1, 3]])
+        if t == 0:
+            for p in (sim, direct):
+                p.set_state(range(4), qpos, qvel)
+        ctrl = np.concatenate([walk_run.pd_targets(clips, frames + t + 1), character.qpos_to_action(qpos[2:])])
+        for p in (sim, direct):
+            p.set_ctrl(ctrl)
+            p.step(SUBSTEPS)
+        for name in ("qpos", "qvel", "xpos", "xquat", "cvel"):
+            a, b = getattr(sim, name).cpu(), getattr(direct, name).cpu()
+            if exact:
+                assert torch.equal(a, b), (name, t)
+            else:
+                torch.testing.assert_close(a, b, rtol=0, atol=VEL_TOL if name in ("qvel", "cvel") else POS_TOL)
+    assert SUBSTEPS in sim._graphs and "forward" in sim._graphs and not direct._graphs
+    assert np.abs(sim.qpos.cpu().numpy() - qpos).max() > 100 * POS_TOL  # they moved

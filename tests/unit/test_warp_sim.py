@@ -15,6 +15,7 @@ velocities; with the PD targets off by 0.01 rad, 1e-2 and 1.2.
 from __future__ import annotations
 
 import copy
+import os
 
 import numpy as np
 import pytest
@@ -35,6 +36,7 @@ VEL_TOL = 5e-3  # qvel, body linear and angular velocities; state features (heig
 CONFIG = {"tracking_error_m": 0.5, "tracking_error_s": 0.05}
 KIN_FIELDS = dict.fromkeys(("qpos", "xpos", "xquat"), POS_TOL) | dict.fromkeys(("qvel", "lin_vel", "ang_vel"), VEL_TOL)
 WALK, KICK = 0, 1
+DEVICE = os.environ.get("MOCAP_WARP_DEVICE", "cpu")  # scripts/device-warp.sh runs these on cuda
 
 
 @pytest.fixture(scope="module")
@@ -45,7 +47,7 @@ def library(character, clip_cache):
 
 @pytest.fixture(scope="module")
 def warp(character, library):
-    return make_sim(character, library, N, SimConfig(backend="warp", **CONFIG), seed=0)
+    return make_sim(character, library, N, SimConfig(backend="warp", device=DEVICE, **CONFIG), seed=0)
 
 
 @pytest.fixture(scope="module")
@@ -71,7 +73,7 @@ def assert_kin_close(a, b, where):
 @pytest.mark.slow
 def test_make_sim_builds_the_configured_backend(warp, mujoco_c):
     assert type(warp) is WarpSim and type(mujoco_c) is BatchedSim
-    assert warp.physics.nworld == N and warp.physics.device.alias == "cpu"
+    assert warp.physics.nworld == N and warp.physics.device.alias == ("cuda:0" if DEVICE == "cuda" else DEVICE)
 
 
 @pytest.mark.slow

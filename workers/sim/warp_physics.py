@@ -39,7 +39,8 @@ setters copy: NumPy or torch input is converted to float32 on the device (one
 host-to-device copy from NumPy on a GPU). `overflowed()` copies nworld integers to the
 host, `contacts()` the current contacts' worlds and geoms. On a GPU, `step` and `set_state`
 synchronise the device before they return, so torch reads after them see the new state
-whatever stream torch uses.
+whatever stream torch uses, and wait for torch's stream before they launch, so Warp's
+kernels see torch's writes.
 
 mujoco_warp and warp are imported when a `WarpPhysics` is made, not with this module,
 so that everything else in workers/ runs without them; where they are missing the
@@ -50,7 +51,7 @@ from __future__ import annotations
 
 import copy
 import importlib.util
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import mujoco
 import numpy as np
@@ -145,6 +146,8 @@ class WarpPhysics:
       nworld: number of worlds.
       device: the Warp device, "cpu" or "cuda" / "cuda:N".
       nconmax, njmax: contacts and constraint rows per world; default `contact_capacity(model)`.
+      graphs: replay each step(K) and the forward pass from a Warp graph captured at its first call (a CUDA
+        graph on a GPU, a recorded launch list on the CPU): one launch instead of a Python call per kernel.
 
     All worlds start at the model's qpos0 with zero velocity and controls, positions computed.
     """
@@ -156,6 +159,7 @@ class WarpPhysics:
         device: str = "cpu",
         nconmax: int | None = None,
         njmax: int | None = None,
+        graphs: bool = True,
     ):
         if nworld < 1:
             raise ValueError(f"nworld must be at least 1, got {nworld}")
@@ -167,6 +171,8 @@ class WarpPhysics:
         self.nconmax = int(nconmax if nconmax is not None else default_con)
         self.njmax = int(njmax if njmax is not None else default_j)
         self.nworld = int(nworld)
+        self.graphs = graphs
+        self._graphs: dict[object, object] = {}  # nstep (or "forward") -> its captured graph
         self.nq, self.nv, self.nu, self.nbody = model.nq, model.nv, model.nu, model.nbody
         self._model = copy.deepcopy(model)  # for get_data
         with wp.ScopedDevice(self.device):
@@ -269,8 +275,7 @@ class WarpPhysics:
         self._qvel[ids] = 0.0 if qvel is None else self._tensor(qvel, (len(ids), self.nv))
         self._time[ids] = 0.0
         self._warmstart[ids] = 0.0
-        with self._wp.ScopedDevice(self.device):
-            self._mjw.forward(self.m, self.d)
+        self._run("forward", self._forward)
         self._sync()
 
     def set_ctrl(self, ctrl: object, world_ids: Sequence[int] | np.ndarray | torch.Tensor | None = None) -> None:
@@ -297,18 +302,39 @@ class WarpPhysics:
             raise ValueError(f"nstep must be non-negative, got {nstep}")
         if nstep == 0:
             return
-        mjw = self._mjw
-        with self._wp.ScopedDevice(self.device):
-            mjw.step2(self.m, self.d)
-            for _ in range(nstep - 1):
-                mjw.step(self.m, self.d)
-            mjw.step1(self.m, self.d)
+        self._run(nstep, self._substeps)
         self._sync()
+
+    def _substeps(self, nstep: int) -> None:
+        mjw = self._mjw
+        mjw.step2(self.m, self.d)
+        for _ in range(nstep - 1):
+            mjw.step(self.m, self.d)
+        mjw.step1(self.m, self.d)
+
+    def _forward(self, _: object) -> None:
+        self._mjw.forward(self.m, self.d)
+
+    def _run(self, key: object, launches: Callable[[object], None]) -> None:
+        """`launches(key)` on the device: replayed from the graph captured at its first call when `graphs` is
+        on (one launch from C instead of one Python call per kernel), called directly otherwise."""
+        wp = self._wp
+        if self.device.is_cuda:  # torch's writes to the arrays (its own stream) land before Warp's kernels read them
+            torch.cuda.current_stream(self.torch_device).synchronize()
+        if not self.graphs:
+            with wp.ScopedDevice(self.device):
+                launches(key)
+            return
+        graph = self._graphs.get(key)
+        if graph is None:
+            with wp.ScopedDevice(self.device), wp.ScopedCapture(force_module_load=True) as capture:
+                launches(key)
+            graph = self._graphs[key] = capture.graph
+        wp.capture_launch(graph)
 
     def forward(self) -> None:
         """Recompute positions, velocities and accelerations at the current state (mj_forward), for all worlds."""
-        with self._wp.ScopedDevice(self.device):
-            self._mjw.forward(self.m, self.d)
+        self._run("forward", self._forward)
         self._sync()
 
     def overflowed(self) -> np.ndarray:
