@@ -165,6 +165,7 @@ class WarpPhysics:
             raise ValueError(f"nworld must be at least 1, got {nworld}")
         mjw, wp = _import_warp()
         self._mjw, self._wp = mjw, wp
+        wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)  # no line per kernel module loaded
         wp.init()
         self.device = wp.get_device(device)
         default_con, default_j = contact_capacity(model) if nconmax is None or njmax is None else (0, 0)
