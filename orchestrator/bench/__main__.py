@@ -19,6 +19,11 @@ def main(argv: list[str] | None = None) -> int:
     sim.add_argument("--control-hz", type=float, default=30.0)
     sim.add_argument("--threads", type=int, default=1, help="threads stepping the batched simulator")
     sim.add_argument("--seed", type=int, default=0)
+    sim.add_argument("--backend", default="mujoco", choices=("mujoco", "warp"), help="warp: MuJoCo Warp against C")
+    sim.add_argument("--device", default="cuda", help="warp: the Warp device (cuda, cuda:N or cpu)")
+    sim.add_argument("--worlds", default="1024,4096,16384", help="warp: comma-separated world counts")
+    sim.add_argument("--cpu-envs", type=int, default=256, help="warp: MuJoCo C environments it is compared with")
+    sim.add_argument("--cpu-threads", type=int, help="warp: threads of the MuJoCo C side (default: every core)")
     learners = sub.add_parser("learners", help="each learner's update(batch): updates/s and share of matmul peak")
     learners.add_argument("--learners", help="comma-separated subset of world_model,vae,discriminator,ppo,task")
     learners.add_argument("--sizes", help="comma-separated subset of paper,small")
@@ -95,7 +100,9 @@ def main(argv: list[str] | None = None) -> int:
         p.add_argument("--out", type=Path, help="also write the JSON to this file")
     args = parser.parse_args(argv)
 
-    if args.what == "sim":
+    if args.what == "sim" and args.backend == "warp":
+        text, result = _bench_warp(parser, args)
+    elif args.what == "sim":
         from orchestrator.bench import sim as bench_sim
 
         try:
@@ -256,6 +263,48 @@ def main(argv: list[str] | None = None) -> int:
     if args.what == "chaos" and not bench_chaos.passed(result):
         return 1  # a fault not recovered, a metric lost, or the run did not finish
     return 0
+
+
+def _bench_warp(parser: argparse.ArgumentParser, args: argparse.Namespace) -> tuple[str, dict]:
+    """`bench sim --backend warp`: refusals in one line before anything is built, then the benchmark."""
+    from workers.sim.warp_physics import INSTALL_HINT, warp_available
+
+    try:
+        worlds = [int(n) for n in args.worlds.split(",") if n]
+    except ValueError:
+        parser.error(f"--worlds: expected integers, got {args.worlds}")
+    if not worlds or min(worlds) < 1 or args.cpu_envs < 1 or (args.cpu_threads is not None and args.cpu_threads < 1):
+        parser.error("--worlds, --cpu-envs and --cpu-threads must be at least 1")
+    if args.seconds <= 0 or args.block_seconds <= 0:
+        parser.error("--seconds and --block-seconds must be positive")
+    rates = [float(hz) for hz in args.sim_hz.split(",") if hz]
+    if len(rates) != 1:
+        parser.error("--sim-hz: the warp benchmark takes one rate")
+    if not warp_available():
+        parser.exit(2, f"error: --backend warp needs mujoco-warp and warp-lang: {INSTALL_HINT}\n")
+    if args.device.startswith("cuda"):
+        import torch
+
+        if not torch.cuda.is_available():
+            parser.exit(
+                2,
+                f"error: --device {args.device}: this machine has no CUDA GPU (--device cpu runs Warp's CPU "
+                "kernels, slowly)\n",
+            )
+    from orchestrator.bench import warp_sim
+
+    result = warp_sim.run(
+        worlds,
+        args.device,
+        args.seconds,
+        args.block_seconds,
+        rates[0],
+        args.control_hz,
+        args.seed,
+        args.cpu_envs,
+        args.cpu_threads,
+    )
+    return warp_sim.format_table(result), result
 
 
 if __name__ == "__main__":

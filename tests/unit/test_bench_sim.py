@@ -4,6 +4,7 @@ import json
 
 import numpy as np
 import pytest
+import torch
 
 from orchestrator.bench.__main__ import main
 from orchestrator.bench.sim import interleaved
@@ -82,3 +83,32 @@ def test_interleaved_takes_the_median_of_pairwise_ratios():
     assert r["raw_physics_steps_per_s"] == 200.0 and r["control_steps_per_s"] == 50.0
     assert r["physics_steps_per_s"] == 200.0
     assert r["ratio_quartiles"] == pytest.approx([0.7, 0.9])
+
+
+@pytest.mark.slow  # MuJoCo Warp's kernels (compiled once per machine, then cached)
+def test_bench_sim_warp_json(tmp_path, capsys):
+    pytest.importorskip("mujoco_warp")
+    out = tmp_path / "warp.json"
+    argv = ["sim", "--backend", "warp", "--device", "cpu", "--worlds", "2,4", "--cpu-envs", "4", "--seconds", "0.3"]
+    assert main([*argv, "--block-seconds", "0.05", "--json", "--out", str(out)]) == 0
+    saved = json.loads(out.read_text())
+    assert json.loads(capsys.readouterr().out) == saved
+    assert saved["device"] == "cpu" and saved["pairs"] == 3 and [r["worlds"] for r in saved["rows"]] == [2, 4]
+    for row in saved["rows"]:
+        assert row["substeps"] == 16
+        for side in ("warp", "physics", "cpu"):
+            assert row[f"{side}_control_steps_per_s"] > 0
+            assert row[f"{side}_physics_steps_per_s"] == pytest.approx(16 * row[f"{side}_control_steps_per_s"])
+        q1, q3 = row["ratio_quartiles"]
+        assert 0 < q1 <= row["ratio_to_cpu"] <= q3
+        assert row["overflowed_worlds"] == 0 and row["warp_resets_per_control_step"] >= 0
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="this machine has a GPU")
+def test_bench_sim_warp_refuses_a_gpu_that_is_not_there(capsys):
+    pytest.importorskip("mujoco_warp")
+    with pytest.raises(SystemExit) as e:
+        main(["sim", "--backend", "warp", "--device", "cuda"])
+    assert e.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--device cuda" in err[0] and "no CUDA GPU" in err[0]
