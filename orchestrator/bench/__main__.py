@@ -59,6 +59,8 @@ def main(argv: list[str] | None = None) -> int:
     pipeline.add_argument("--warmup", type=int, default=3, help="untimed iterations first")
     pipeline.add_argument("--envs", type=int, default=16, help="environments per rollout worker")
     pipeline.add_argument("--seed", type=int, default=0)
+    pipeline.add_argument("--sim", default="mujoco", help="comma-separated simulator engines: mujoco,warp")
+    pipeline.add_argument("--sim-device", default="cuda", help="the warp engine's device (cuda, cuda:N or cpu)")
     rollout = sub.add_parser("rollout", help="the rollout worker with each policy against raw mj_step, interleaved")
     rollout.add_argument(
         "--policies", default="vae,actor-critic", help="comma-separated: vae,vae-paper,actor-critic,tracker"
@@ -180,6 +182,11 @@ def main(argv: list[str] | None = None) -> int:
         if not workers or min(workers) < 1 or args.iterations < 1 or args.envs < 1:
             parser.error("--workers, --iterations and --envs must be at least 1")
         algos = [a for a in args.algos.split(",") if a]
+        sims = tuple(s for s in args.sim.split(",") if s)
+        if not sims or not set(sims) <= {"mujoco", "warp"}:
+            parser.error(f"--sim: expected mujoco and/or warp, got {args.sim}")
+        if "warp" in sims:
+            _refuse_missing_warp(parser, "--sim-device", args.sim_device)
         result = bench_pipeline.run(
             algos,
             args.scale,
@@ -190,6 +197,8 @@ def main(argv: list[str] | None = None) -> int:
             args.envs,
             args.seed,
             lambda m: print(m, file=sys.stderr),
+            sims,
+            args.sim_device,
         )
         text = bench_pipeline.format_table(result)
     elif args.what == "rollout":
@@ -265,9 +274,24 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
+def _refuse_missing_warp(parser: argparse.ArgumentParser, flag: str, device: str) -> None:
+    """Exit 2 with one line when the warp extra is missing or `device` is a GPU this machine does not have."""
+    from workers.sim.warp_physics import INSTALL_HINT, warp_available
+
+    if not warp_available():
+        parser.exit(2, f"error: the warp simulator needs mujoco-warp and warp-lang: {INSTALL_HINT}\n")
+    if device.startswith("cuda"):
+        import torch
+
+        if not torch.cuda.is_available():
+            parser.exit(
+                2,
+                f"error: {flag} {device}: this machine has no CUDA GPU ({flag} cpu runs Warp's CPU kernels, slowly)\n",
+            )
+
+
 def _bench_warp(parser: argparse.ArgumentParser, args: argparse.Namespace) -> tuple[str, dict]:
     """`bench sim --backend warp`: refusals in one line before anything is built, then the benchmark."""
-    from workers.sim.warp_physics import INSTALL_HINT, warp_available
 
     try:
         worlds = [int(n) for n in args.worlds.split(",") if n]
@@ -280,17 +304,7 @@ def _bench_warp(parser: argparse.ArgumentParser, args: argparse.Namespace) -> tu
     rates = [float(hz) for hz in args.sim_hz.split(",") if hz]
     if len(rates) != 1:
         parser.error("--sim-hz: the warp benchmark takes one rate")
-    if not warp_available():
-        parser.exit(2, f"error: --backend warp needs mujoco-warp and warp-lang: {INSTALL_HINT}\n")
-    if args.device.startswith("cuda"):
-        import torch
-
-        if not torch.cuda.is_available():
-            parser.exit(
-                2,
-                f"error: --device {args.device}: this machine has no CUDA GPU (--device cpu runs Warp's CPU "
-                "kernels, slowly)\n",
-            )
+    _refuse_missing_warp(parser, "--device", args.device)
     from orchestrator.bench import warp_sim
 
     result = warp_sim.run(

@@ -26,7 +26,16 @@ def _updates(metrics: dict[str, float]) -> float:
 
 
 def measure(
-    algo: str, scale: str, runtime: str, workers: int, iterations: int, warmup: int, envs: int, seed: int
+    algo: str,
+    scale: str,
+    runtime: str,
+    workers: int,
+    iterations: int,
+    warmup: int,
+    envs: int,
+    seed: int,
+    sim: str = "mujoco",
+    sim_device: str = "cpu",
 ) -> dict[str, Any]:
     with TemporaryDirectory() as tmp:
         overrides = [
@@ -41,6 +50,8 @@ def measure(
             "progress=false",
             f"seed={seed}",
             "algo.loop.warmup=0",
+            f"sim.backend={sim}",
+            f"sim.device={sim_device}",
         ]
         cfg = validate(compose(overrides))
         rt, trainer = untracked_trainer(cfg)
@@ -61,6 +72,7 @@ def measure(
             rt.shutdown()
     return {
         "algo": algo,
+        "sim": sim if sim == "mujoco" else f"{sim}:{sim_device}",
         "scale": scale,
         "runtime": runtime,
         "workers": workers,
@@ -82,14 +94,19 @@ def run(
     envs: int,
     seed: int,
     progress=None,
+    sims: tuple[str, ...] = ("mujoco",),
+    sim_device: str = "cpu",
 ) -> dict[str, Any]:
+    """Each method, runtime and worker count on each simulator engine (`sims`: mujoco and/or warp, the latter on
+    `sim_device`), one after another."""
     results = []
     for algo in algos:
         for rt in runtimes:
             for n in workers:
-                if progress:
-                    progress(f"pipeline: {algo} on {rt} with {n} rollout worker(s)...")
-                results.append(measure(algo, scale, rt, n, iterations, warmup, envs, seed))
+                for sim in sims:
+                    if progress:
+                        progress(f"pipeline: {algo} on {rt} with {n} rollout worker(s), sim {sim}...")
+                    results.append(measure(algo, scale, rt, n, iterations, warmup, envs, seed, sim, sim_device))
     return {
         "benchmark": "pipeline",
         "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version()},
@@ -101,13 +118,13 @@ def run(
 def format_table(result: dict[str, Any]) -> str:
     lines = [f"pipeline benchmark: {result['preset']}, {result['machine']['cpus']} CPUs"]
     lines.append(
-        f"{'algo':<11} {'runtime':<8} {'workers':>7} {'envs/worker':>11} {'samples/s':>10} {'updates/s':>10} "
-        f"{'seconds':>8}"
+        f"{'algo':<11} {'sim':<10} {'runtime':<8} {'workers':>7} {'envs/worker':>11} {'samples/s':>10} "
+        f"{'updates/s':>10} {'seconds':>8}"
     )
     for r in result["results"]:
         lines.append(
-            f"{r['algo']:<11} {r['runtime']:<8} {r['workers']:>7} {r['envs_per_worker']:>11} "
-            f"{r['samples_per_s']:>10.0f} "
+            f"{r['algo']:<11} {r.get('sim', 'mujoco'):<10} {r['runtime']:<8} {r['workers']:>7} "
+            f"{r['envs_per_worker']:>11} {r['samples_per_s']:>10.0f} "
             f"{r['updates_per_s']:>10.1f} {r['seconds']:>8.1f}"
         )
     return "\n".join(lines)

@@ -13,9 +13,17 @@ import torch
 ROOT = Path(__file__).resolve().parents[2]
 
 
-def test_the_device_check_imports_only_torch_numpy_and_mujoco():
+@pytest.mark.parametrize(
+    "modules",
+    [
+        "orchestrator.bench.device, orchestrator.bench.__main__",
+        # scripts/device-warp.sh: the Warp benchmark, the simulator and its tests' imports
+        "orchestrator.bench.warp_sim, workers.sim.warp_sim, workers.sim.env",
+    ],
+)
+def test_the_device_checks_import_only_torch_numpy_and_mujoco(modules):
     code = (
-        "import sys, orchestrator.bench.device, orchestrator.bench.__main__\n"
+        f"import sys, {modules}\n"
         "bad = sorted({m.split('.')[0] for m in sys.modules} & {'ray', 'mlflow', 'hydra', 'omegaconf', 'scipy',"
         " 'pandas', 'matplotlib', 'yaml', 'gymnasium'})\n"
         "print(','.join(bad))\n"

@@ -112,3 +112,16 @@ def test_bench_sim_warp_refuses_a_gpu_that_is_not_there(capsys):
     assert e.value.code == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--device cuda" in err[0] and "no CUDA GPU" in err[0]
+
+
+@pytest.mark.slow  # two short loops of the tracker, on each engine
+def test_bench_pipeline_runs_a_method_on_each_simulator_engine(tmp_path, capsys):
+    pytest.importorskip("mujoco_warp")
+    out = tmp_path / "pipeline.json"
+    argv = ["pipeline", "--algos", "tracker", "--runtimes", "local", "--workers", "1", "--iterations", "2"]
+    argv += ["--warmup", "1", "--envs", "4", "--sim", "mujoco,warp", "--sim-device", "cpu", "--out", str(out)]
+    assert main(argv) == 0
+    rows = json.loads(out.read_text())["results"]
+    assert [r["sim"] for r in rows] == ["mujoco", "warp:cpu"]
+    assert all(r["samples_per_s"] > 0 and r["updates_per_s"] > 0 for r in rows)
+    assert "warp:cpu" in capsys.readouterr().out
