@@ -5,7 +5,7 @@ VENV ?= .venv
 BIN := $(VENV)/bin
 TORCH ?= torch==2.13.0
 
-.PHONY: setup samples system-packages run test test-all bench device-wheels lint
+.PHONY: setup samples system-packages run test test-all bench device-wheels device-warp lint
 
 # Debian packages the project uses beside Python: PostgreSQL's server (MLflow's backend store in
 # `make cluster-up`) and the GL libraries of MuJoCo's offscreen renderer (evaluation videos:
@@ -48,6 +48,10 @@ device-wheels:
 	$(BIN)/pip download --no-deps --only-binary=:all: --implementation cp --python-version $(DEVICE_PY) \
 		--platform manylinux_2_28_x86_64 --platform manylinux2014_x86_64 -d .device/wheels \
 		mujoco==4.0.0 mujoco-core==4.0.0 mujoco-studio==4.0.0 glfw==2.11.0 pyopengl==3.1.10
+
+# The MuJoCo Warp check's wheels, warp-lang in parts of at most 58 MiB (docs/warp.md, "On a GPU").
+device-warp:
+	PYTHON=$(BIN)/python sh scripts/device-warp.sh prepare
 
 lint:
 	$(BIN)/ruff check .
