@@ -37,7 +37,7 @@ from workers.models import body_state
 from workers.models.actor_critic import ActorCritic
 from workers.models.deploy import ActorMean, PriorMeanController
 from workers.rewards import imitation_observation
-from workers.sim.env import BatchedSim
+from workers.sim.env import Simulator
 from workers.tracking_goal import goal_dim, next_goal
 
 OBSERVATIONS = ("state", "imitation", "mimic")
@@ -53,7 +53,7 @@ def observation_dim(kind: str, state_dim: int) -> int:
     return state_dim if kind == "state" else 2 * state_dim
 
 
-def observe(kind: str, sim: BatchedSim, bs: np.ndarray) -> np.ndarray:
+def observe(kind: str, sim: Simulator, bs: np.ndarray) -> np.ndarray:
     """The observation [M, D] of the environments in body states bs [M, B, 13] at their current frames.
 
     s is computed in NumPy (`body_state.features_np`, as the gym adapter does).
@@ -82,17 +82,17 @@ class Policy:
     def set_weights(self, weights: Weights) -> None:
         raise NotImplementedError
 
-    def act(self, sim: BatchedSim, bs: np.ndarray) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    def act(self, sim: Simulator, bs: np.ndarray) -> tuple[np.ndarray, dict[str, np.ndarray]]:
         """(actions [M, A], per-environment extras {name: [M, ...]}) for body states bs [M, B, 13]."""
         raise NotImplementedError
 
-    def observe(self, sim: BatchedSim, bs: np.ndarray) -> np.ndarray:
+    def observe(self, sim: Simulator, bs: np.ndarray) -> np.ndarray:
         raise NotImplementedError
 
     def episodes_reset(self, ids: np.ndarray) -> None:
         """Environments `ids` start new episodes."""
 
-    def deployable(self, sim: BatchedSim, bs: np.ndarray) -> tuple[torch.nn.Module, np.ndarray] | None:
+    def deployable(self, sim: Simulator, bs: np.ndarray) -> tuple[torch.nn.Module, np.ndarray] | None:
         """(The trained policy as a module from an input batch to deterministic actions, that input for
         body states bs), for export (`workers.models.deploy`); None for a policy that is not exported."""
         return None
@@ -128,7 +128,7 @@ class VAEPolicy(Policy):
         self.version = int(weights.version)
 
     @torch.no_grad()
-    def act(self, sim: BatchedSim, bs: np.ndarray) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    def act(self, sim: Simulator, bs: np.ndarray) -> tuple[np.ndarray, dict[str, np.ndarray]]:
         s = body_state.features(torch.from_numpy(bs))
         posterior, prior = self.controller.encode(s, next_goal(self.controller.goal, sim, bs))
         use_prior = torch.from_numpy(self.use_prior)[:, None]
@@ -143,7 +143,7 @@ class VAEPolicy(Policy):
     def episodes_reset(self, ids: np.ndarray) -> None:
         self.use_prior[ids] = self.rng.random(len(ids)) < self.prior_probability
 
-    def deployable(self, sim: BatchedSim, bs: np.ndarray) -> tuple[torch.nn.Module, np.ndarray]:
+    def deployable(self, sim: Simulator, bs: np.ndarray) -> tuple[torch.nn.Module, np.ndarray]:
         return PriorMeanController(self.controller), body_state.features(torch.from_numpy(bs)).numpy()
 
     def state_dict(self) -> dict[str, Any]:
@@ -164,7 +164,7 @@ class GaussianPolicy(Policy):
         self.obs = obs
         self.residual = residual
 
-    def base_action(self, sim: BatchedSim) -> np.ndarray:
+    def base_action(self, sim: Simulator) -> np.ndarray:
         """The PD targets [M, A] that hold the reference's next pose (the zero offset of a residual policy)."""
         return sim.library.pd_targets(sim.clip_id, sim.start_frame + sim.steps + 1)
 
@@ -172,11 +172,11 @@ class GaussianPolicy(Policy):
         self.module.load_state_dict(weights.state)
         self.version = int(weights.version)
 
-    def observe(self, sim: BatchedSim, bs: np.ndarray) -> np.ndarray:
+    def observe(self, sim: Simulator, bs: np.ndarray) -> np.ndarray:
         return observe(self.obs, sim, bs)
 
     @torch.no_grad()
-    def act(self, sim: BatchedSim, bs: np.ndarray) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    def act(self, sim: Simulator, bs: np.ndarray) -> tuple[np.ndarray, dict[str, np.ndarray]]:
         obs = self.observe(sim, bs)
         o = torch.from_numpy(obs)
         actions, log_probs = self.module.act(o, generator=self.generator)
@@ -185,11 +185,11 @@ class GaussianPolicy(Policy):
         applied = actions.numpy() + self.base_action(sim) if self.residual else actions.numpy()
         return applied, extras
 
-    def deployable(self, sim: BatchedSim, bs: np.ndarray) -> tuple[torch.nn.Module, np.ndarray]:
+    def deployable(self, sim: Simulator, bs: np.ndarray) -> tuple[torch.nn.Module, np.ndarray]:
         return ActorMean(self.module), self.observe(sim, bs)
 
     @torch.no_grad()
-    def mean_action(self, sim: BatchedSim, bs: np.ndarray) -> np.ndarray:
+    def mean_action(self, sim: Simulator, bs: np.ndarray) -> np.ndarray:
         """The deterministic PD targets [M, A] (evaluation)."""
         mean = self.module.mean(torch.from_numpy(self.observe(sim, bs))).numpy()
         return mean + self.base_action(sim) if self.residual else mean
@@ -236,7 +236,7 @@ class ExpertPolicy(Policy):
         self.version = int(weights.version)
 
     @torch.no_grad()
-    def mean_action(self, sim: BatchedSim, bs: np.ndarray) -> np.ndarray:
+    def mean_action(self, sim: Simulator, bs: np.ndarray) -> np.ndarray:
         if self.inner is not None:
             return self.inner.mean_action(sim, bs)
         if self.controller is None:
@@ -245,7 +245,7 @@ class ExpertPolicy(Policy):
         posterior, _ = self.controller.encode(s, next_goal(self.controller.goal, sim, bs))
         return self.controller.act(s, posterior.mean).numpy()
 
-    def act(self, sim: BatchedSim, bs: np.ndarray) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    def act(self, sim: Simulator, bs: np.ndarray) -> tuple[np.ndarray, dict[str, np.ndarray]]:
         a = torch.from_numpy(np.asarray(self.mean_action(sim, bs), np.float32))
         a = a + self.noise * torch.randn(a.shape, generator=self.generator)
         return a.numpy(), {}

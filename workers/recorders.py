@@ -20,16 +20,16 @@ from workers.balancing import tracking_reward
 from workers.body.character import Character
 from workers.body.features import amp_dim, amp_features, state_features
 from workers.rewards import DEFAULT_WEIGHTS, imitation_reward
-from workers.sim.env import BatchedSim, StepResult
+from workers.sim.env import Simulator, StepResult
 
 
 class Recorder:
     """Records arrays [T, M, ...] alongside the trajectory, from each step's result."""
 
-    def begin(self, steps: int, num_envs: int, sim: BatchedSim) -> None:
+    def begin(self, steps: int, num_envs: int, sim: Simulator) -> None:
         raise NotImplementedError
 
-    def record(self, t: int, sim: BatchedSim, result: StepResult) -> None:
+    def record(self, t: int, sim: Simulator, result: StepResult) -> None:
         raise NotImplementedError
 
     def finish(self) -> dict[str, np.ndarray]:
@@ -42,18 +42,18 @@ class AMPFeatures(Recorder):
     def __init__(self, character: Character):
         self.character = character
 
-    def begin(self, steps: int, num_envs: int, sim: BatchedSim) -> None:
+    def begin(self, steps: int, num_envs: int, sim: Simulator) -> None:
         d = amp_dim(self.character)
         self.before = np.empty((steps, num_envs, d), np.float32)
         self.after = np.empty_like(self.before)
         self.current = amp_features(self.character, sim.kin_state())
 
-    def record(self, t: int, sim: BatchedSim, result: StepResult) -> None:
+    def record(self, t: int, sim: Simulator, result: StepResult) -> None:
         self.before[t] = self.current
         self.after[t] = amp_features(self.character, result.kin)
         self.current = self.after[t]
 
-    def after_reset(self, sim: BatchedSim, ids: np.ndarray) -> None:
+    def after_reset(self, sim: Simulator, ids: np.ndarray) -> None:
         self.current = self.current.copy()
         self.current[ids] = amp_features(self.character, sim.kin_state()[ids])
 
@@ -68,11 +68,11 @@ class ImitationReward(Recorder):
         self.character = character
         self.weights = dict(DEFAULT_WEIGHTS if weights is None else weights)
 
-    def begin(self, steps: int, num_envs: int, sim: BatchedSim) -> None:
+    def begin(self, steps: int, num_envs: int, sim: Simulator) -> None:
         self.reward = np.empty((steps, num_envs), np.float32)
         self.terms: dict[str, np.ndarray] = {}
 
-    def record(self, t: int, sim: BatchedSim, result: StepResult) -> None:
+    def record(self, t: int, sim: Simulator, result: StepResult) -> None:
         r, terms = imitation_reward(self.character, result.kin, sim.reference_state(), self.weights)
         self.reward[t] = r
         for k, v in terms.items():
@@ -92,19 +92,19 @@ class TrackingReward(Recorder):
         self.weights = np.asarray(weights, np.float64)
         self.temperature = temperature
 
-    def _of(self, sim: BatchedSim, state: np.ndarray, ids: np.ndarray | slice = slice(None)) -> np.ndarray:
+    def _of(self, sim: Simulator, state: np.ndarray, ids: np.ndarray | slice = slice(None)) -> np.ndarray:
         ref = sim.library.features(sim.clip_id[ids], (sim.start_frame + sim.steps)[ids])
         return tracking_reward(state, ref, self.weights, self.temperature)
 
-    def begin(self, steps: int, num_envs: int, sim: BatchedSim) -> None:
+    def begin(self, steps: int, num_envs: int, sim: Simulator) -> None:
         self.reward = np.empty((steps, num_envs), np.float32)
         self.current = self._of(sim, state_features(sim.kin_state()))
 
-    def record(self, t: int, sim: BatchedSim, result: StepResult) -> None:
+    def record(self, t: int, sim: Simulator, result: StepResult) -> None:
         self.reward[t] = self.current
         self.current = tracking_reward(result.state, result.ref_state, self.weights, self.temperature)
 
-    def after_reset(self, sim: BatchedSim, ids: np.ndarray) -> None:
+    def after_reset(self, sim: Simulator, ids: np.ndarray) -> None:
         self.current[ids] = self._of(sim, state_features(sim.kin_state())[ids], ids)
 
     after_switch = after_reset  # the same state against its new reference

@@ -58,5 +58,7 @@ def test_default_loop_improves_tracking_in_the_simulator(tmp_path):
     # The loop is deterministic on one machine, but its trajectory is not the same on another (a different
     # CPU's floating point): after / before measured 0.67, 0.70, 0.82 for seeds 0, 1, 2 on one machine and
     # 0.87 for seed 0 on another. An untrained or broken loop stays at 1 or above; 0.9 asks for a clear gain.
+    # Not every seed passes: on 2026-12-05 seeds 0-3 gave 0.68, 0.70, 0.67 and 1.33 (README, "Learners"), and
+    # a float rounding's difference (the losses compiled) moved seed 0 to 0.95. A fixed seed of a chaotic loop.
     assert after < 0.9 * before
     assert np.mean(rec[-5:]) < 0.85 * np.mean(rec[:5])

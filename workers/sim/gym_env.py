@@ -48,7 +48,7 @@ from gymnasium.vector.utils import batch_space
 from workers.body.character import Character
 from workers.motion.library import MotionLibrary
 from workers.rewards import DEFAULT_WEIGHTS, imitation_observation, imitation_reward
-from workers.sim.env import BatchedSim, SimConfig, StepResult
+from workers.sim.env import SimConfig, Simulator, StepResult, make_sim
 
 ENV_ID = "MocapHumanoidImitation-v0"
 DEFAULT_CLIPS = ("humanoid3d_walk",)
@@ -74,7 +74,7 @@ class _Tracking:
         self.character = character or Character.load()
         self.library = library or MotionLibrary.load(self.character, list(clips), fps=control_hz)
         config = SimConfig(sim_hz=sim_hz, control_hz=control_hz, max_episode_steps=max_episode_steps)
-        self.sim = BatchedSim(self.character, self.library, num_envs, config)
+        self.sim = make_sim(self.character, self.library, num_envs, config)
         self.weights = dict(DEFAULT_WEIGHTS if reward_weights is None else reward_weights)
         obs_dim = 2 * self.sim.state_dim
         self.observation_space = spaces.Box(-np.inf, np.inf, (obs_dim,), np.float32)
@@ -104,7 +104,7 @@ class _CoreAccess:
     _core: _Tracking
 
     @property
-    def sim(self) -> BatchedSim:
+    def sim(self) -> Simulator:
         return self._core.sim
 
     @property
