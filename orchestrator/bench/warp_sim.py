@@ -1,7 +1,8 @@
 """`bench sim --backend warp`: MuJoCo Warp on a device against MuJoCo C on all the machine's cores, interleaved.
 
-For each world count N, two sides alternate in blocks (`block_seconds`), the order switching from pair to
-pair so that a steady drift of the machine cancels; each pair gives a ratio and the report is their median.
+For each world count N, the four sides below run in turn in blocks (`block_seconds`), the order reversed from
+round to round so that a steady drift of the machine cancels; each round gives a Warp / MuJoCo C ratio and the
+report is their median.
 
 - warp: `WarpPhysics` with N worlds on the device (`--device cuda` or `cpu`), driven by an MLP of ControlVAE's
   size (s -> 3x512 ELU -> 28) evaluated on the device every control step. Everything of a control step stays
@@ -14,6 +15,9 @@ pair so that a steady drift of the machine cancels; each pair gives a ratio and 
   host so far): it costs one small device-to-host copy a control step, and a reset recomputes every world's
   positions (`WarpPhysics.set_state`), so the figure includes both.
 - physics only: the same worlds under constant controls, no policy: the simulator's own ceiling.
+- interface: `WarpSim` (what `sim.backend=warp` runs in a rollout worker today) with N worlds, driven by the
+  same MLP on the CPU through the simulator interface: NumPy in and out, the body arrays copied to the host
+  every control step, features, contact falls and resets as the rollout worker has them.
 - cpu: `BatchedSim` (MuJoCo C, `mujoco.batch`) with `cpu_envs` environments stepped on `cpu_threads` threads
   (default every core), the same MLP on the CPU with as many torch threads, full simulator interface
   (features, contact falls, resets): `bench sim`'s batched side.
@@ -28,6 +32,7 @@ from __future__ import annotations
 import os
 import platform
 import time
+from dataclasses import replace
 
 import mujoco
 import numpy as np
@@ -35,7 +40,7 @@ import torch
 
 from orchestrator.bench.sim import BatchedRunner, make_mlp_policy, walk_run_setup
 from workers.models import body_state
-from workers.sim.env import BatchedSim, SimConfig
+from workers.sim.env import BatchedSim, SimConfig, make_sim
 from workers.sim.warp_physics import WarpPhysics
 
 FALLEN_ROOT_M = 0.5  # root height below which a world counts as fallen and is reset
@@ -127,10 +132,13 @@ def run_worlds(
     physics = WarpRunner(character, library, nworld, device, k, seed, policy=False)
     cpu_sim = BatchedSim(character, library, cpu_envs, config, seed=seed)
     cpu = BatchedRunner(cpu_sim, make_mlp_policy(cpu_sim.state_dim, cpu_sim.action_dim, seed))
-    rates = interleave({"warp": warp, "physics": physics, "cpu": cpu}, pairs, block_seconds)
+    warp_sim = make_sim(character, library, nworld, replace(config, backend="warp", device=device), seed=seed)
+    interface = BatchedRunner(warp_sim, make_mlp_policy(warp_sim.state_dim, warp_sim.action_dim, seed))
+    sides = {"warp": warp, "physics": physics, "interface": interface, "cpu": cpu}
+    rates = interleave(sides, pairs, block_seconds)
     ratios = rates["warp"] / rates["cpu"]
     out = {"worlds": nworld, "substeps": k}
-    for name in ("warp", "physics", "cpu"):
+    for name in sides:
         out[f"{name}_control_steps_per_s"] = float(np.median(rates[name]))
         out[f"{name}_physics_steps_per_s"] = float(np.median(rates[name])) * k
     out["ratio_to_cpu"] = float(np.median(ratios))
@@ -151,14 +159,14 @@ def run(
     cpu_envs: int = 256,
     cpu_threads: int | None = None,
 ) -> dict:
-    """Each world count: `seconds` of interleaved blocks of the three sides."""
+    """Each world count: `seconds` of interleaved blocks of the four sides."""
     import warp
 
     cpu_threads = cpu_threads or os.cpu_count() or 1
     torch.set_num_threads(cpu_threads)
     character, library = walk_run_setup(sim_hz, control_hz)
     config = SimConfig(sim_hz=sim_hz, control_hz=control_hz, threads=cpu_threads)
-    pairs = max(3, int(round(seconds / (3 * block_seconds))))
+    pairs = max(3, int(round(seconds / (4 * block_seconds))))
     gpu = torch.cuda.get_device_name() if device.startswith("cuda") else None
     return {
         "benchmark": "sim-warp",
@@ -182,19 +190,21 @@ def format_table(r: dict) -> str:
         f"sim benchmark, MuJoCo Warp on {r['device']}{' (' + r['machine']['gpu'] + ')' if r['machine']['gpu'] else ''}"
         f" against MuJoCo C ({r['cpu_envs']} envs on {r['cpu_threads']} threads); {r['sim_hz']:g}/"
         f"{r['control_hz']:g} Hz; {r['pairs']} rounds of {r['block_seconds']:g} s blocks, sides interleaved",
-        f"{'worlds':>8}  {'warp+MLP control/s':>19}{'physics/s':>14}{'physics only/s':>16}{'C+MLP control/s':>17}"
-        f"{'warp/C':>8}{'IQR':>13}{'resets/step':>12}{'overflow':>9}",
+        f"{'worlds':>8}  {'warp+MLP control/s':>19}{'physics/s':>14}{'physics only/s':>16}{'WarpSim control/s':>18}"
+        f"{'C+MLP control/s':>17}{'warp/C':>8}{'IQR':>13}{'resets/step':>12}{'overflow':>9}",
     ]
     for x in r["rows"]:
         q1, q3 = x["ratio_quartiles"]
         lines.append(
             f"{x['worlds']:>8}  {x['warp_control_steps_per_s']:>19,.0f}{x['warp_physics_steps_per_s']:>14,.0f}"
-            f"{x['physics_physics_steps_per_s']:>16,.0f}{x['cpu_control_steps_per_s']:>17,.0f}"
+            f"{x['physics_physics_steps_per_s']:>16,.0f}{x['interface_control_steps_per_s']:>18,.0f}"
+            f"{x['cpu_control_steps_per_s']:>17,.0f}"
             f"{x['ratio_to_cpu']:>8.2f}{f'{q1:.2f}-{q3:.2f}':>13}{x['warp_resets_per_control_step']:>12.2f}"
             f"{x['overflowed_worlds']:>9}"
         )
     lines.append(
         "control/s: control steps per second summed over worlds (physics/s: x K substeps); warp/C: median over "
-        "rounds of the Warp+MLP rate over MuJoCo C's with the same MLP; resets/step: worlds reset a control step"
+        "rounds of the Warp+MLP rate over MuJoCo C's with the same MLP; WarpSim: the simulator interface a rollout "
+        "worker runs on warp today (host copies, MLP on the CPU); resets/step: worlds reset a control step"
     )
     return "\n".join(lines)

@@ -96,7 +96,7 @@ def test_bench_sim_warp_json(tmp_path, capsys):
     assert saved["device"] == "cpu" and saved["pairs"] == 3 and [r["worlds"] for r in saved["rows"]] == [2, 4]
     for row in saved["rows"]:
         assert row["substeps"] == 16
-        for side in ("warp", "physics", "cpu"):
+        for side in ("warp", "physics", "interface", "cpu"):
             assert row[f"{side}_control_steps_per_s"] > 0
             assert row[f"{side}_physics_steps_per_s"] == pytest.approx(16 * row[f"{side}_control_steps_per_s"])
         q1, q3 = row["ratio_quartiles"]
