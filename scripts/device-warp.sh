@@ -11,13 +11,15 @@
 # There, in order, while the machine stays warm (the device tool's `run`, carry as printed):
 #   sh scripts/device-warp.sh stash          (once per part but the last)
 #   sh scripts/device-warp.sh run            (the last part and .device/warp/wheels: join, install, check)
-# QUICK=1 benchmarks fewer world counts. The checks write their output under $OUT when it is set: the Warp tests on cuda, the equivalence run, and
+# QUICK=1 (or WORLDS=a,b,...) benchmarks fewer world counts. The checks write their output under $OUT when it is set: the Warp tests on cuda, the equivalence run, and
 # `bench sim --backend warp --device cuda` against MuJoCo C on all the machine's cores.
 set -e
 cd "$(dirname "$0")/.."
 DIR=.device/warp
 STASH="${DEVICE_WARP_STASH:-$HOME/.cache/mocap-device-warp}"
 DEVICE_PY="${DEVICE_PY:-3.12}"
+DEVICE="${WARP_DEVICE:-cuda}"  # a dry run of the whole path here: WARP_DEVICE=cpu DEVICE_PY=3.11 PYTHON=.venv/bin/python
+PY="${PYTHON:-python3}"
 PART_MIB="${PART_MIB:-58}"
 WARP=warp-lang==1.19.0
 SMALL="mujoco==4.0.0 mujoco-core==4.0.0 mujoco-studio==4.0.0 glfw==2.11.0 pyopengl==3.1.10 mujoco-warp==4.0.0"
@@ -25,7 +27,7 @@ SMALL="mujoco==4.0.0 mujoco-core==4.0.0 mujoco-studio==4.0.0 glfw==2.11.0 pyopen
 download() {
     dest=$1
     shift
-    "${PYTHON:-python3}" -m pip download --quiet --no-deps --only-binary=:all: --implementation cp --python-version "$DEVICE_PY" \
+    "$PY" -m pip download --quiet --no-deps --only-binary=:all: --implementation cp --python-version "$DEVICE_PY" \
         --platform manylinux_2_28_x86_64 --platform manylinux_2_27_x86_64 --platform manylinux2014_x86_64 \
         -d "$dest" "$@"
 }
@@ -80,7 +82,7 @@ install() {
         ls -l "$STASH" >&2
         exit 2
     fi
-    python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target "$STASH/site" \
+    "$PY" -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target "$STASH/site" \
         "$STASH/$name" "$DIR"/wheels/*.whl
 }
 
@@ -89,16 +91,19 @@ run_checks() {
     install
     out="${OUT:-$STASH/out}"
     mkdir -p "$out"
-    export PYTHONPATH="$STASH/site:." PYTHONUNBUFFERED=1 MOCAP_WARP_DEVICE=cuda
+    export PYTHONPATH="$STASH/site:." PYTHONUNBUFFERED=1 MOCAP_WARP_DEVICE="$DEVICE"
     nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader || true
-    python3 -c "import warp, mujoco_warp, torch; warp.init(); print('warp', warp.__version__, 'torch', torch.__version__)"
+    "$PY" -c "import warp, mujoco_warp, torch; warp.init(); print('warp', warp.__version__, 'torch', torch.__version__)"
     status=0
-    python3 -m pytest -q -m "" -p no:cacheprovider tests/unit/test_warp_physics.py tests/unit/test_warp_sim.py \
-        2>&1 | tee "$out/tests.txt" || status=1
-    python3 scripts/warp_equivalence.py --device cuda --control-steps 300 2>&1 | tee "$out/equivalence.txt" || status=1
+    "$PY" -m pytest -q -m "" -p no:cacheprovider tests/unit/test_warp_physics.py tests/unit/test_warp_sim.py \
+        tests/unit/test_warp_tracking.py >"$out/tests.txt" 2>&1 || status=1
+    tail -n 15 "$out/tests.txt"
+    "$PY" scripts/warp_equivalence.py --device "$DEVICE" --control-steps 300 >"$out/equivalence.txt" 2>&1 || status=1
+    tail -n 20 "$out/equivalence.txt"
     if [ -n "$QUICK" ]; then worlds=1024,8192; else worlds=1024,4096,16384,65536; fi
-    python3 -m orchestrator.bench sim --backend warp --device cuda --worlds "$worlds" --json --out "$out/bench-sim.json" \
-        2>&1 | tee "$out/bench-sim.txt" || status=1
+    "$PY" -m orchestrator.bench sim --backend warp --device "$DEVICE" --worlds "${WORLDS:-$worlds}" \
+        --out "$out/bench-sim.json" >"$out/bench-sim.txt" 2>&1 || status=1
+    tail -n 12 "$out/bench-sim.txt"
     exit $status
 }
 
