@@ -31,7 +31,7 @@ from workers.models import body_state
 from workers.models.actor_critic import HelperLayout
 from workers.policies import Policy
 from workers.recorders import Recorder
-from workers.sim.env import BatchedSim, StepResult
+from workers.sim.env import Simulator, StepResult
 
 
 def helper_layout(config: TaskConfig, state_dim: int, latent_dim: int, action_dim: int) -> HelperLayout | None:
@@ -92,7 +92,7 @@ class TaskRolloutPolicy(Policy, Recorder):
             self.module.load_state_dict(weights.state)
 
     @torch.no_grad()
-    def actions(self, sim: BatchedSim, bs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def actions(self, sim: Simulator, bs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(applied actions [M, A], the decoder's own actions [M, A]) for body states bs [M, B, 13]."""
         if self.module is None:
             raise RuntimeError("the task policy has no skill model yet (configure({'skill': ...}) first)")
@@ -106,7 +106,7 @@ class TaskRolloutPolicy(Policy, Recorder):
         applied, decoded, _ = self.module.act(self.controller, s, obs, eps)
         return applied.numpy(), decoded.numpy()
 
-    def _start_step(self, sim: BatchedSim, bs: np.ndarray) -> None:
+    def _start_step(self, sim: Simulator, bs: np.ndarray) -> None:
         """Before acting on body states bs: draw the goals not drawn yet and, for the progress reward, keep the
         distance the step starts from, d_{t−1}."""
         if len(self.unset):
@@ -116,17 +116,17 @@ class TaskRolloutPolicy(Policy, Recorder):
             goals = torch.from_numpy(self.goals.goals)
             self.before = task_terms(self.config.task, torch.from_numpy(bs), goals)["distance"].numpy()
 
-    def act(self, sim: BatchedSim, bs: np.ndarray) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    def act(self, sim: Simulator, bs: np.ndarray) -> tuple[np.ndarray, dict[str, np.ndarray]]:
         applied, decoded = self.actions(sim, bs)
         deviation = np.abs(applied - decoded).mean(-1).astype(np.float32)
         return applied, {"goal": self.goals.goals.copy(), "helper_deviation": deviation}
 
     # Recorder: the task reward of each step, for the goal the step was taken for ------------
-    def begin(self, steps: int, num_envs: int, sim: BatchedSim) -> None:
+    def begin(self, steps: int, num_envs: int, sim: Simulator) -> None:
         self.reward = np.empty((steps, num_envs), np.float32)
         self.terms: dict[str, np.ndarray] = {}
 
-    def record(self, t: int, sim: BatchedSim, result: StepResult) -> None:
+    def record(self, t: int, sim: Simulator, result: StepResult) -> None:
         bs, goal = torch.from_numpy(body_state.pack(result.kin)), torch.from_numpy(self.goals.goals)
         terms = task_terms(self.config.task, bs, goal)
         if self.config.reward == "progress":
@@ -137,7 +137,7 @@ class TaskRolloutPolicy(Policy, Recorder):
             self.terms.setdefault(k, np.empty_like(self.reward))[t] = v.numpy()
         self.goals.advance(sim, bs.numpy())
 
-    def after_reset(self, sim: BatchedSim, ids: np.ndarray) -> None:
+    def after_reset(self, sim: Simulator, ids: np.ndarray) -> None:
         self.goals.reset(sim, body_state.pack(sim.kin_state()), ids)
 
     def finish(self) -> dict[str, np.ndarray]:
@@ -179,7 +179,7 @@ class TaskPPOPolicy(TaskRolloutPolicy):
         if self.weights is not None:
             self.module.load_state_dict(self.weights.state)
 
-    def observe(self, sim: BatchedSim, bs: np.ndarray) -> np.ndarray:
+    def observe(self, sim: Simulator, bs: np.ndarray) -> np.ndarray:
         self._start_step(sim, bs)
         b = torch.from_numpy(bs)
         s = body_state.features(b)
@@ -201,13 +201,13 @@ class TaskPPOPolicy(TaskRolloutPolicy):
         return applied.numpy(), decoded.numpy()
 
     @torch.no_grad()
-    def actions(self, sim: BatchedSim, bs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def actions(self, sim: Simulator, bs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         if self.module is None:
             raise RuntimeError("the task policy has no skill model yet (configure({'skill': ...}) first)")
         return self.decode(bs, self.module.mean(torch.from_numpy(self.observe(sim, bs))))
 
     @torch.no_grad()
-    def act(self, sim: BatchedSim, bs: np.ndarray) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    def act(self, sim: Simulator, bs: np.ndarray) -> tuple[np.ndarray, dict[str, np.ndarray]]:
         obs = self.observe(sim, bs)
         u, log_prob = self.module.act(torch.from_numpy(obs), generator=self.generator)
         applied, decoded = self.decode(bs, u)
