@@ -39,7 +39,7 @@ from workers.losses.task import GOAL_DIMS, VR_TERMS, task_terms, vr_points
 from workers.models.body_state import pack
 
 if TYPE_CHECKING:
-    from workers.sim.env import BatchedSim
+    from workers.sim.env import Simulator
 
 DEFAULT_RANGES: dict[str, tuple[float, float]] = {
     "heading": (-math.pi, math.pi),  # θ* of heading, θ_h* of steering (radians, world frame)
@@ -75,7 +75,7 @@ def _check_ranges(ranges: Mapping[str, tuple[float, float]] | None) -> dict[str,
     return merged
 
 
-def vr_targets(sim: BatchedSim, ids: np.ndarray | None = None) -> np.ndarray:
+def vr_targets(sim: Simulator, ids: np.ndarray | None = None) -> np.ndarray:
     """[n, 9] the tracked points (head, left hand, right hand) of the reference of environments `ids`
     (all by default) one frame ahead: what `sim.reference_state()` holds after the next step."""
     ids = np.arange(sim.num_envs) if ids is None else np.asarray(ids, dtype=int)
@@ -104,15 +104,15 @@ class GoalSampler:
         self.ranges = _check_ranges(ranges)
         self.goals = np.zeros((num_envs, GOAL_DIMS[task]), np.float32)  # [M, G] world frame
 
-    def reset(self, sim: BatchedSim | None, bs: np.ndarray, ids: np.ndarray) -> None:
+    def reset(self, sim: Simulator | None, bs: np.ndarray, ids: np.ndarray) -> None:
         """New goals for environments `ids` that start episodes; bs [M, B, 13] are the body states of
-        all environments (after `sim.reset(ids)`), sim the `BatchedSim` (read for `vr` only)."""
+        all environments (after `sim.reset(ids)`), sim the `Simulator` (read for `vr` only)."""
         ids = np.asarray(ids, dtype=int)
         if len(ids) == 0:
             return
         self.goals[ids] = vr_targets(sim, ids) if self.task == "vr" else self._draw(bs, ids)
 
-    def advance(self, sim: BatchedSim | None, bs: np.ndarray) -> np.ndarray:
+    def advance(self, sim: Simulator | None, bs: np.ndarray) -> np.ndarray:
         """After a control step: redraw each goal with probability change_rate / control_hz (vr: follow
         the reference instead); returns [M] bool, which goals changed (vr: none)."""
         if self.task == "vr":
