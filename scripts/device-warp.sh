@@ -11,8 +11,9 @@
 # There, in order, while the machine stays warm (the device tool's `run`, carry as printed):
 #   sh scripts/device-warp.sh stash          (once per part but the last)
 #   sh scripts/device-warp.sh run            (the last part and .device/warp/wheels: join, install, check)
-# QUICK=1 (or WORLDS=a,b,...) benchmarks fewer world counts. The checks write their output under $OUT when it is set: the Warp tests on cuda, the equivalence run, and
-# `bench sim --backend warp --device cuda` against MuJoCo C on all the machine's cores.
+# QUICK=1 (or WORLDS=a,b,...) benchmarks fewer world counts. The checks write their output under $OUT when it is
+# set: the Warp tests on cuda, the equivalence run, and `bench sim --backend warp --device cuda` against MuJoCo C on
+# all the machine's cores.
 set -e
 cd "$(dirname "$0")/.."
 DIR=.device/warp
