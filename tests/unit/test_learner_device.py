@@ -80,6 +80,39 @@ def test_rollout_workers_take_a_share_of_the_gpu_only_for_a_warp_simulator_on_it
     assert worker_gpus(SimpleNamespace(**ray), warp, 2, 2) == 0.0
 
 
+class _Reserved(Exception):
+    """Raised by `_ReserveOnly.reserve` to stop the trainer before it spawns anything."""
+
+
+class _ReserveOnly:
+    def reserve(self, bundles):
+        raise _Reserved(bundles)
+
+
+def test_the_trainer_reserves_the_rollout_workers_gpu_shares(monkeypatch, tmp_path, character):
+    pytest.importorskip("mujoco_warp")
+    from orchestrator.compose import compose, validate
+    from orchestrator.tracking.base import NoOpLogger
+    from orchestrator.trainer import Trainer
+
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 1)
+    common = [f"run_dir={tmp_path}", "scale=smoke", "runtime=ray", "runtime.pin_cores=shared", "sim.backend=warp"]
+    shares = {}
+    for name, extra in (("auto", ["sim.device=cuda"]), ("set", ["sim.device=cuda", "runtime.worker_gpus=0.1"])):
+        cfg = validate(compose([*common, *extra]))
+        with pytest.raises(_Reserved) as e:
+            Trainer(cfg, _ReserveOnly(), NoOpLogger(), character)
+        bundles = e.value.args[0]
+        shares[name] = [b.gpus for b in bundles]
+    # controlvae: replay, world model, VAE, then two rollout workers; the two learners and two workers share a GPU
+    assert shares["auto"] == [0.0, 0.25, 0.25, 0.25, 0.25]
+    assert shares["set"] == [0.0, 0.5, 0.5, 0.1, 0.1]  # the workers' as set, the learners share theirs
+    cfg = validate(compose([*common, "sim.device=cpu"]))
+    with pytest.raises(_Reserved) as e:
+        Trainer(cfg, _ReserveOnly(), NoOpLogger(), character)
+    assert [b.gpus for b in e.value.args[0]] == [0.0, 0.5, 0.5, 0.0, 0.0]  # Warp on the CPU: no GPU for workers
+
+
 def walk_windows(walk_run, n: int = 6, steps: int = 3) -> np.ndarray:
     frames = np.arange(n)[:, None] + np.arange(steps + 1)
     kin = walk_run.state(np.zeros(frames.size, int), frames.ravel())
