@@ -137,6 +137,7 @@ def sim_device(cfg: Config) -> None:
                 f"sim.device={cfg.sim.device}: a rollout worker on the cluster at runtime.address sees only the GPUs "
                 "Ray assigns it; set runtime.worker_gpus (e.g. 0.25)"
             )
+        cluster_gpus(cfg)
         return
     index = int(cfg.sim.device.partition(":")[2] or 0)
     if index >= torch.cuda.device_count():
@@ -147,9 +148,10 @@ def sim_device(cfg: Config) -> None:
 
 
 def cluster_gpus(cfg: Config) -> None:
-    """ConfigError when a learner asks for more GPUs than the Ray cluster at runtime.address has in all (Ray
-    would wait for them without end), asked by connecting as a client, which starts nothing there. (Learners
-    that each fit but not all together are refused when Ray is asked to reserve them, `RayRuntime.reserve`.)"""
+    """ConfigError when a learner or a rollout worker asks for more GPUs than the Ray cluster at runtime.address
+    has in all (Ray would wait for them without end), asked by connecting as a client, which starts nothing
+    there. (Actors that each fit but not all together are refused when Ray is asked to reserve them,
+    `RayRuntime.reserve`.)"""
     import ray
 
     from orchestrator.runtime.ray import AddressError, check_address
@@ -164,11 +166,11 @@ def cluster_gpus(cfg: Config) -> None:
         have = ray.cluster_resources().get("GPU", 0.0)
     finally:
         ray.shutdown()
-    if r.learner_gpus > have:
-        raise ConfigError(
-            f"runtime.learner_gpus={r.learner_gpus:g}: the Ray cluster at runtime.address={r.address} has "
-            f"{have:g} GPU(s)"
-        )
+    for key, asked in (("learner_gpus", r.learner_gpus), ("worker_gpus", r.worker_gpus)):
+        if asked > have:
+            raise ConfigError(
+                f"runtime.{key}={asked:g}: the Ray cluster at runtime.address={r.address} has {have:g} GPU(s)"
+            )
 
 
 def character_and_clips(cfg: Config) -> Character:
