@@ -130,17 +130,23 @@ class BatchedRunner:
         return rate
 
 
-def make_mlp_policy(state_dim: int, action_dim: int, seed: int):
+def mlp(state_dim: int, action_dim: int, seed: int):
+    """An MLP of ControlVAE's policy size (s -> 3x512 ELU -> actions), in eval mode, its weights drawn from `seed`."""
     import torch
 
     torch.manual_seed(seed)
-    net = torch.nn.Sequential(
+    return torch.nn.Sequential(
         torch.nn.Linear(state_dim, 512), torch.nn.ELU(),
         torch.nn.Linear(512, 512), torch.nn.ELU(),
         torch.nn.Linear(512, 512), torch.nn.ELU(),
         torch.nn.Linear(512, action_dim),
-    )  # fmt: skip
-    net.eval()
+    ).eval()  # fmt: skip
+
+
+def make_mlp_policy(state_dim: int, action_dim: int, seed: int):
+    import torch
+
+    net = mlp(state_dim, action_dim, seed)
 
     def policy(state: np.ndarray) -> np.ndarray:
         with torch.inference_mode():

@@ -38,24 +38,13 @@ import mujoco
 import numpy as np
 import torch
 
-from orchestrator.bench.sim import BatchedRunner, make_mlp_policy, walk_run_setup
+from orchestrator.bench.sim import BatchedRunner, make_mlp_policy, mlp, walk_run_setup
 from workers.models import body_state
 from workers.sim.env import BatchedSim, SimConfig, make_sim
 from workers.sim.warp_physics import WarpPhysics
 
 FALLEN_ROOT_M = 0.5  # root height below which a world counts as fallen and is reset
 RESET_POOL = 4096  # reference start states kept on the device
-
-
-def mlp(state_dim: int, action_dim: int, seed: int) -> torch.nn.Module:
-    """ControlVAE's policy size, the same weights as `bench sim`'s MLP for the same seed."""
-    torch.manual_seed(seed)
-    return torch.nn.Sequential(
-        torch.nn.Linear(state_dim, 512), torch.nn.ELU(),
-        torch.nn.Linear(512, 512), torch.nn.ELU(),
-        torch.nn.Linear(512, 512), torch.nn.ELU(),
-        torch.nn.Linear(512, action_dim),
-    ).eval()  # fmt: skip
 
 
 def body_states(phys: WarpPhysics) -> torch.Tensor:
