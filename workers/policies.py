@@ -21,7 +21,12 @@ trajectories whichever process runs the worker.
   always the PD targets applied; the sample that the log-probability refers to is the
   extra `action`.
 
-Inference runs batched, in eval mode and without gradients.
+Inference runs batched, in eval mode and without gradients, on the policy's `device` (`Policy.to`;
+the rollout worker puts it on its simulator's device, a GPU with MuJoCo Warp on CUDA): the
+networks live there, their inputs are copied there and the actions and extras come back to the
+host as NumPy. The noise is drawn from the worker's CPU generator and then moved
+(`workers.models.nets.gaussian`), so a seed gives the same draws on either device and the
+worker's checkpoint holds one random stream.
 """
 
 from __future__ import annotations
@@ -36,6 +41,7 @@ from workers.learners.vae import VAEConfig, build_controller
 from workers.models import body_state
 from workers.models.actor_critic import ActorCritic
 from workers.models.deploy import ActorMean, PriorMeanController
+from workers.models.nets import gaussian
 from workers.rewards import imitation_observation
 from workers.sim.env import Simulator
 from workers.tracking_goal import goal_dim, next_goal
@@ -74,6 +80,24 @@ class Policy:
     # The policy acts on an observation (`observe`): the worker records the last one of each
     # collect call and the final one of each truncated episode, for bootstrapping.
     observes: bool = False
+    # Where inference runs (`to`).
+    device: torch.device = torch.device("cpu")
+
+    def to(self, device: torch.device | str) -> Policy:
+        """Run inference on `device`: the networks move there now, and those made later (an expert's or a
+        skill model's, with their weights) are made there."""
+        self.device = torch.device(device)
+        for net in self.networks():
+            net.to(self.device)
+        return self
+
+    def networks(self) -> list[torch.nn.Module]:
+        """The modules inference runs through (what `to` moves)."""
+        return []
+
+    def tensor(self, array: np.ndarray) -> torch.Tensor:
+        """`array` as a tensor on the policy's device (shared with NumPy on the CPU, a copy elsewhere)."""
+        return torch.as_tensor(array).to(self.device)
 
     def bind(self, num_envs: int, rng: np.random.Generator, generator: torch.Generator) -> None:
         """Take the worker's random streams (NumPy for per-episode choices, torch for noise)."""
@@ -119,6 +143,9 @@ class VAEPolicy(Policy):
             self.controller = build_controller(num_bodies, action_dim, config)
         self.controller.eval().requires_grad_(False)
 
+    def networks(self) -> list[torch.nn.Module]:
+        return [self.controller]
+
     def bind(self, num_envs: int, rng: np.random.Generator, generator: torch.Generator) -> None:
         super().bind(num_envs, rng, generator)
         self.use_prior = self.rng.random(num_envs) < self.prior_probability  # [M] per episode
@@ -129,16 +156,15 @@ class VAEPolicy(Policy):
 
     @torch.no_grad()
     def act(self, sim: Simulator, bs: np.ndarray) -> tuple[np.ndarray, dict[str, np.ndarray]]:
-        s = body_state.features(torch.from_numpy(bs))
-        posterior, prior = self.controller.encode(s, next_goal(self.controller.goal, sim, bs))
-        use_prior = torch.from_numpy(self.use_prior)[:, None]
+        s = body_state.features(self.tensor(bs))
+        posterior, prior = self.controller.encode(s, next_goal(self.controller.goal, sim, bs).to(self.device))
+        use_prior = self.tensor(self.use_prior)[:, None]
         mean = torch.where(use_prior, prior.mean, posterior.mean)
         log_std = torch.where(use_prior, prior.log_std, posterior.log_std)
-        eps = torch.randn(mean.shape, generator=self.generator)
-        z = mean + log_std.exp() * eps
+        z = mean + log_std.exp() * gaussian(mean.shape, self.generator, device=self.device)
         a = self.controller.act(s, z)
-        a = a + self.action_noise * torch.randn(a.shape, generator=self.generator)
-        return a.numpy(), {}
+        a = a + self.action_noise * gaussian(a.shape, self.generator, device=self.device)
+        return a.cpu().numpy(), {}
 
     def episodes_reset(self, ids: np.ndarray) -> None:
         self.use_prior[ids] = self.rng.random(len(ids)) < self.prior_probability
@@ -164,6 +190,9 @@ class GaussianPolicy(Policy):
         self.obs = obs
         self.residual = residual
 
+    def networks(self) -> list[torch.nn.Module]:
+        return [self.module]
+
     def base_action(self, sim: Simulator) -> np.ndarray:
         """The PD targets [M, A] that hold the reference's next pose (the zero offset of a residual policy)."""
         return sim.library.pd_targets(sim.clip_id, sim.start_frame + sim.steps + 1)
@@ -178,11 +207,11 @@ class GaussianPolicy(Policy):
     @torch.no_grad()
     def act(self, sim: Simulator, bs: np.ndarray) -> tuple[np.ndarray, dict[str, np.ndarray]]:
         obs = self.observe(sim, bs)
-        o = torch.from_numpy(obs)
-        actions, log_probs = self.module.act(o, generator=self.generator)
+        actions, log_probs = self.module.act(self.tensor(obs), generator=self.generator)
+        actions = actions.cpu().numpy()
         # V(o) is left to the learner, which evaluates it in one batch over the whole rollout.
-        extras = {"obs": obs, "action": actions.numpy(), "log_prob": log_probs.numpy()}
-        applied = actions.numpy() + self.base_action(sim) if self.residual else actions.numpy()
+        extras = {"obs": obs, "action": actions, "log_prob": log_probs.cpu().numpy()}
+        applied = actions + self.base_action(sim) if self.residual else actions
         return applied, extras
 
     def deployable(self, sim: Simulator, bs: np.ndarray) -> tuple[torch.nn.Module, np.ndarray]:
@@ -191,7 +220,7 @@ class GaussianPolicy(Policy):
     @torch.no_grad()
     def mean_action(self, sim: Simulator, bs: np.ndarray) -> np.ndarray:
         """The deterministic PD targets [M, A] (evaluation)."""
-        mean = self.module.mean(torch.from_numpy(self.observe(sim, bs))).numpy()
+        mean = self.module.mean(self.tensor(self.observe(sim, bs))).cpu().numpy()
         return mean + self.base_action(sim) if self.residual else mean
 
 
@@ -222,15 +251,24 @@ class ExpertPolicy(Policy):
         self.inner: GaussianPolicy | None = None
         self.controller: torch.nn.Module | None = None
 
+    def to(self, device: torch.device | str) -> ExpertPolicy:
+        super().to(device)
+        if self.inner is not None:
+            self.inner.to(self.device)
+        return self
+
+    def networks(self) -> list[torch.nn.Module]:
+        return [] if self.controller is None else [self.controller]
+
     def set_weights(self, weights: Weights) -> None:
         w = weights.state
         if w["kind"] == "ppo":
             module = expert_module(w, self.num_bodies, self.action_dim)
-            self.inner, self.controller = GaussianPolicy(module, w["observation"], w["residual"]), None
+            self.inner, self.controller = GaussianPolicy(module, w["observation"], w["residual"]).to(self.device), None
         elif w["kind"] == "vae":
             controller = build_controller(self.num_bodies, self.action_dim, w["config"])
             controller.load_state_dict(w["module"])
-            self.controller, self.inner = controller.eval().requires_grad_(False), None
+            self.controller, self.inner = controller.eval().requires_grad_(False).to(self.device), None
         else:
             raise ValueError(f"unknown expert kind {w['kind']!r}; expected one of {EXPERT_KINDS}")
         self.version = int(weights.version)
@@ -241,11 +279,11 @@ class ExpertPolicy(Policy):
             return self.inner.mean_action(sim, bs)
         if self.controller is None:
             raise RuntimeError("the expert has no weights yet")
-        s = body_state.features(torch.from_numpy(bs))
-        posterior, _ = self.controller.encode(s, next_goal(self.controller.goal, sim, bs))
-        return self.controller.act(s, posterior.mean).numpy()
+        s = body_state.features(self.tensor(bs))
+        posterior, _ = self.controller.encode(s, next_goal(self.controller.goal, sim, bs).to(self.device))
+        return self.controller.act(s, posterior.mean).cpu().numpy()
 
     def act(self, sim: Simulator, bs: np.ndarray) -> tuple[np.ndarray, dict[str, np.ndarray]]:
         a = torch.from_numpy(np.asarray(self.mean_action(sim, bs), np.float32))
-        a = a + self.noise * torch.randn(a.shape, generator=self.generator)
+        a = a + self.noise * gaussian(a.shape, self.generator)
         return a.numpy(), {}

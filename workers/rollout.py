@@ -18,6 +18,9 @@ Finished environments (fall, tracking failure, clip end, timeout) are reset at
 once from the library's start distribution; `truncated` marks the ends that are
 time limits (timeout, end of a one-shot clip), the others are terminal.
 
+The policy runs on the simulator's device (`SimConfig.device`: the CPU, or the GPU of MuJoCo
+Warp's worlds), with its noise drawn from the worker's CPU generator (`workers.policies`).
+
 The worker owns its random streams (the simulator's resets, and the numpy and
 torch streams it hands its policy), so the same seed and the same weights give
 the same trajectories, and `state_dict` restores them together with the
@@ -68,6 +71,8 @@ class RolloutWorker:
         self.generator = torch.Generator().manual_seed(int(torch_seed))
         self.policy = policy
         policy.bind(num_envs, self.rng, self.generator)
+        # Inference runs where the simulator's worlds are (a GPU with MuJoCo Warp on CUDA, else the CPU).
+        policy.to(self.sim.config.device)
         # A policy that records too (the task policy: its goals and rewards) records after the others.
         self.recorders = list(recorders) + ([policy] if isinstance(policy, Recorder) else [])
         # Counters for `stats`.

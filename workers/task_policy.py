@@ -29,6 +29,7 @@ from workers.learners.vae import build_controller
 from workers.losses.task import goal_observation, goal_observation_dim, task_terms
 from workers.models import body_state
 from workers.models.actor_critic import HelperLayout
+from workers.models.nets import gaussian
 from workers.policies import Policy
 from workers.recorders import Recorder
 from workers.sim.env import Simulator, StepResult
@@ -70,6 +71,9 @@ class TaskRolloutPolicy(Policy, Recorder):
         self.module: torch.nn.Module | None = None
         self.weights: Weights | None = None
 
+    def networks(self) -> list[torch.nn.Module]:
+        return [net for net in (self.controller, self.module) if net is not None]
+
     def bind(self, num_envs: int, rng: np.random.Generator, generator: torch.Generator) -> None:
         super().bind(num_envs, rng, generator)
         self.goals = GoalSampler(self.config.task, num_envs, self.control_hz, self.config.change_rate, rng)
@@ -79,9 +83,9 @@ class TaskRolloutPolicy(Policy, Recorder):
         if "skill" not in settings:
             return
         skill = settings["skill"]
-        self.controller = skill_controller(skill, self.num_bodies, self.action_dim)
+        self.controller = skill_controller(skill, self.num_bodies, self.action_dim).to(self.device)
         module = task_policy(self.controller, self.action_dim, self.config, skill.get("prior_action", True))
-        self.module = module.eval().requires_grad_(False)
+        self.module = module.eval().requires_grad_(False).to(self.device)
         if self.weights is not None:
             self.module.load_state_dict(self.weights.state)
 
@@ -97,14 +101,14 @@ class TaskRolloutPolicy(Policy, Recorder):
         if self.module is None:
             raise RuntimeError("the task policy has no skill model yet (configure({'skill': ...}) first)")
         self._start_step(sim, bs)
-        b = torch.from_numpy(bs)
+        b = self.tensor(bs)
         s = body_state.features(b)
-        obs = goal_observation(self.config.task, b, torch.from_numpy(self.goals.goals))
+        obs = goal_observation(self.config.task, b, self.tensor(self.goals.goals))
         eps = None
         if self.stochastic:
-            eps = torch.randn((len(bs), self.controller.latent_dim), generator=self.generator)
+            eps = gaussian((len(bs), self.controller.latent_dim), self.generator, device=self.device)
         applied, decoded, _ = self.module.act(self.controller, s, obs, eps)
-        return applied.numpy(), decoded.numpy()
+        return applied.cpu().numpy(), decoded.cpu().numpy()
 
     def _start_step(self, sim: Simulator, bs: np.ndarray) -> None:
         """Before acting on body states bs: draw the goals not drawn yet and, for the progress reward, keep the
@@ -170,47 +174,47 @@ class TaskPPOPolicy(TaskRolloutPolicy):
         if "skill" not in settings:
             return
         skill = settings["skill"]
-        self.controller = skill_controller(skill, self.num_bodies, self.action_dim)
+        self.controller = skill_controller(skill, self.num_bodies, self.action_dim).to(self.device)
         self.prior_action = bool(skill.get("prior_action", True))
         state_dim, latent_dim = self.controller.state_norm.mean.shape[0], self.controller.latent_dim
         obs_dim, act_dim, self.helper = ppo_dims(self.config, state_dim, latent_dim, self.action_dim)
         module = build_actor_critic(obs_dim, act_dim, self.ppo_config, self.helper)
-        self.module = module.eval().requires_grad_(False)
+        self.module = module.eval().requires_grad_(False).to(self.device)
         if self.weights is not None:
             self.module.load_state_dict(self.weights.state)
 
     def observe(self, sim: Simulator, bs: np.ndarray) -> np.ndarray:
         self._start_step(sim, bs)
-        b = torch.from_numpy(bs)
+        b = self.tensor(bs)
         s = body_state.features(b)
-        parts = [s, goal_observation(self.config.task, b, torch.from_numpy(self.goals.goals))]
+        parts = [s, goal_observation(self.config.task, b, self.tensor(self.goals.goals))]
         if self.helper is not None:  # the latent u_z is added to, for the helper's z = b + u_z
             parts.append(
                 self.controller.prior_dist(s).mean if self.prior_action else s.new_zeros(len(s), self.helper.latent_dim)
             )
-        return torch.cat(parts, dim=-1).numpy()
+        return torch.cat(parts, dim=-1).cpu().numpy()
 
     @torch.no_grad()
     def decode(self, bs: np.ndarray, u: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
         """(applied, decoder's own) actions [M, A] for the PPO action u [M, Z (+ A)]."""
-        s = body_state.features(torch.from_numpy(bs))
+        s = body_state.features(self.tensor(bs))
         latent = self.controller.latent_dim
         z = u[:, :latent] + (self.controller.prior_dist(s).mean if self.prior_action else 0.0)
         decoded = self.controller.act(s, z)
         applied = decoded + self.config.sigma * torch.tanh(u[:, latent:]) if self.config.sigma > 0 else decoded
-        return applied.numpy(), decoded.numpy()
+        return applied.cpu().numpy(), decoded.cpu().numpy()
 
     @torch.no_grad()
     def actions(self, sim: Simulator, bs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         if self.module is None:
             raise RuntimeError("the task policy has no skill model yet (configure({'skill': ...}) first)")
-        return self.decode(bs, self.module.mean(torch.from_numpy(self.observe(sim, bs))))
+        return self.decode(bs, self.module.mean(self.tensor(self.observe(sim, bs))))
 
     @torch.no_grad()
     def act(self, sim: Simulator, bs: np.ndarray) -> tuple[np.ndarray, dict[str, np.ndarray]]:
         obs = self.observe(sim, bs)
-        u, log_prob = self.module.act(torch.from_numpy(obs), generator=self.generator)
+        u, log_prob = self.module.act(self.tensor(obs), generator=self.generator)
         applied, decoded = self.decode(bs, u)
         deviation = np.abs(applied - decoded).mean(-1).astype(np.float32)
-        extras = {"obs": obs, "action": u.numpy(), "log_prob": log_prob.numpy()}
+        extras = {"obs": obs, "action": u.cpu().numpy(), "log_prob": log_prob.cpu().numpy()}
         return applied, {**extras, "goal": self.goals.goals.copy(), "helper_deviation": deviation}

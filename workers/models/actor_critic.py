@@ -16,7 +16,7 @@ import torch
 from torch import nn
 from torch.distributions import Normal
 
-from workers.models.nets import Normalizer, mlp
+from workers.models.nets import Normalizer, gaussian, mlp
 
 
 class ActorCritic(nn.Module):
@@ -82,7 +82,7 @@ class ActorCritic(nn.Module):
         if deterministic:
             noise = torch.zeros_like(mean)
         else:
-            noise = torch.randn(mean.shape, generator=generator, dtype=mean.dtype, device=mean.device)
+            noise = gaussian(mean.shape, generator, mean.dtype, mean.device)
         # log N(μ + σε; μ, σ) = −ε²/2 − log σ − log √(2π), from the noise itself: the same number
         # as Normal.log_prob up to rounding, without building a distribution for every step.
         log_prob = (-0.5 * noise.square() - std.log() - 0.5 * math.log(2 * math.pi)).sum(-1)
@@ -175,7 +175,7 @@ class HelperActorCritic(ActorCritic):
         def noise(like: torch.Tensor) -> torch.Tensor:
             if deterministic:
                 return torch.zeros_like(like)
-            return torch.randn(like.shape, generator=generator, dtype=like.dtype, device=like.device)
+            return gaussian(like.shape, generator, like.dtype, like.device)
 
         eps_z = noise(mu_z)
         u_z = mu_z + std_z * eps_z

@@ -161,3 +161,20 @@ class Normalizer(nn.Module):
         """y · std + mean: a standardised output back in the data's units (unchanged before any sample)."""
         affine = self.affine(y.dtype)
         return y if affine is None else y * affine[1] + affine[0]
+
+
+def gaussian(
+    shape: Sequence[int],
+    generator: torch.Generator | None = None,
+    dtype: torch.dtype = torch.float32,
+    device: torch.device | str | None = None,
+) -> torch.Tensor:
+    """Standard normal noise of `shape` on `device`, drawn from `generator` on the generator's own device
+    (the CPU's default stream when there is none) and then moved.
+
+    A rollout worker's policy may run on a GPU while its random stream stays the CPU generator it
+    checkpoints: the draws are then the same numbers on either device, so one seed gives the same noise
+    wherever inference runs (on the CPU, exactly `torch.randn(shape, generator=generator)`)."""
+    source = generator.device if generator is not None else torch.device("cpu")
+    noise = torch.randn(tuple(shape), generator=generator, dtype=dtype, device=source)
+    return noise if device is None else noise.to(device)
