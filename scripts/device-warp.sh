@@ -12,8 +12,9 @@
 #   sh scripts/device-warp.sh stash          (once per part but the last)
 #   sh scripts/device-warp.sh run            (the last part and .device/warp/wheels: join, install, check)
 # QUICK=1 (or WORLDS=a,b,...) benchmarks fewer world counts. The checks write their output under $OUT when it is
-# set: the Warp tests on cuda, the equivalence run, and `bench sim --backend warp --device cuda` against MuJoCo C on
-# all the machine's cores.
+# set: the Warp tests on cuda (and the policies' on cuda against the CPU), the equivalence run, `bench sim --backend
+# warp --device cuda` against MuJoCo C on all the machine's cores, and `bench host --device cuda` (a worker's host work
+# per control step beside its policy on the GPU).
 set -e
 cd "$(dirname "$0")/.."
 DIR=.device/warp
@@ -105,6 +106,9 @@ run_checks() {
     "$PY" -m orchestrator.bench sim --backend warp --device "$DEVICE" --worlds "${WORLDS:-$worlds}" \
         --out "$out/bench-sim.json" >"$out/bench-sim.txt" 2>&1 || status=1
     tail -n 12 "$out/bench-sim.txt"
+    "$PY" -m orchestrator.bench host --device "$DEVICE" --policies vae,vae-paper,tracker --envs 1024,4096,16384 \
+        --out "$out/bench-host.json" >"$out/bench-host.txt" 2>&1 || status=1
+    tail -n 12 "$out/bench-host.txt"
     exit $status
 }
 

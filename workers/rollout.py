@@ -43,7 +43,7 @@ from workers.models import body_state
 from workers.motion.library import MotionLibrary
 from workers.policies import Policy
 from workers.recorders import Recorder
-from workers.sim.env import SimConfig, StepResult, make_sim
+from workers.sim.env import SimConfig, Simulator, StepResult, make_sim
 from workers.types import Trajectory
 
 
@@ -60,13 +60,17 @@ class RolloutWorker:
         recorders: Sequence[Recorder] = (),
         switch_rate: float = 0.0,
         switch_window: float = 2.0,
+        sim: Simulator | None = None,
     ):
         if switch_rate < 0 or switch_window <= 0:
             raise ValueError(f"need switch_rate >= 0 and switch_window > 0, got {switch_rate} and {switch_window}")
         self.library = library
         self.worker_id = worker_id
         sim_seed, np_seed, torch_seed = np.random.SeedSequence([seed, worker_id]).generate_state(3)
-        self.sim = make_sim(character, library, num_envs, sim_config, seed=int(sim_seed))
+        # `sim`: an already built simulator of num_envs environments (a benchmark's), instead of make_sim's.
+        self.sim = sim if sim is not None else make_sim(character, library, num_envs, sim_config, seed=int(sim_seed))
+        if self.sim.num_envs != num_envs:
+            raise ValueError(f"the simulator has {self.sim.num_envs} environments, the worker was asked for {num_envs}")
         self.rng = np.random.default_rng(int(np_seed))
         self.generator = torch.Generator().manual_seed(int(torch_seed))
         self.policy = policy

@@ -73,6 +73,14 @@ def main(argv: list[str] | None = None) -> int:
     rollout.add_argument("--collect", type=int, default=16, help="control steps per collect call")
     rollout.add_argument("--threads", type=int, default=1, help="threads stepping the batched simulator")
     rollout.add_argument("--seed", type=int, default=0)
+    host = sub.add_parser("host", help="a rollout worker's work besides the physics, per control step (no physics)")
+    host.add_argument("--policies", default="vae,tracker", help="comma-separated: vae,vae-paper,actor-critic,tracker")
+    host.add_argument("--envs", default="1024,4096", help="comma-separated environment counts of the worker")
+    host.add_argument("--steps", type=int, default=32, help="timed control steps per measurement")
+    host.add_argument("--collect", type=int, default=8, help="control steps per collect call")
+    host.add_argument("--device", default="cpu", help="where the policy's inference runs (cpu, cuda or cuda:N)")
+    host.add_argument("--threads", type=int, default=1, help="torch.set_num_threads (a worker's default: 1)")
+    host.add_argument("--seed", type=int, default=0)
     peer = sub.add_parser("peer", help="our tracker pipeline against RLlib's PPO, interleaved (needs .[peer])")
     peer.add_argument("--envs", type=int, default=16, help="environments stepped as one batch, each side")
     peer.add_argument("--hidden", default="1024,512", help="policy and value MLP sizes (AMP's)")
@@ -97,7 +105,7 @@ def main(argv: list[str] | None = None) -> int:
     chaos.add_argument("--outage", type=float, help="seconds the tracking server is down (default: min(180, 20 x M))")
     chaos.add_argument("--run-dir", type=Path, help="where the run and the server's store go (default: outputs/bench/)")
     chaos.add_argument("overrides", nargs="*", help="Hydra overrides of the run, e.g. runtime.rollout_workers=3")
-    for p in (sim, learners, device, pipeline, rollout, peer, learning, chaos):
+    for p in (sim, learners, device, pipeline, rollout, host, peer, learning, chaos):
         p.add_argument("--json", action="store_true", help="print JSON instead of the table")
         p.add_argument("--out", type=Path, help="also write the JSON to this file")
     args = parser.parse_args(argv)
@@ -218,6 +226,8 @@ def main(argv: list[str] | None = None) -> int:
             args.threads,
         )  # fmt: skip
         text = bench_rollout.format_table(result)
+    elif args.what == "host":
+        text, result = _bench_host(parser, args)
     elif args.what == "peer":
         from orchestrator.bench import peer as bench_peer
 
@@ -288,6 +298,30 @@ def _refuse_missing_warp(parser: argparse.ArgumentParser, flag: str, device: str
                 2,
                 f"error: {flag} {device}: this machine has no CUDA GPU ({flag} cpu runs Warp's CPU kernels, slowly)\n",
             )
+
+
+def _bench_host(parser: argparse.ArgumentParser, args: argparse.Namespace) -> tuple[str, dict]:
+    """`bench host`: refusals in one line before anything is built, then the benchmark."""
+    from orchestrator.bench import host as bench_host
+
+    policies = [p for p in args.policies.split(",") if p]
+    if not policies or not set(policies) <= set(bench_host.POLICIES):
+        parser.error(f"--policies: expected some of {','.join(bench_host.POLICIES)}, got {args.policies}")
+    try:
+        envs = [int(n) for n in args.envs.split(",") if n]
+    except ValueError:
+        parser.error(f"--envs: expected integers, got {args.envs}")
+    if not envs or min(envs + [args.steps, args.collect, args.threads]) < 1:
+        parser.error("--envs, --steps, --collect and --threads must be at least 1")
+    if args.device.startswith("cuda"):
+        import torch
+
+        if not torch.cuda.is_available():
+            parser.exit(2, f"error: --device {args.device}: this machine has no CUDA GPU\n")
+    elif args.device != "cpu":
+        parser.error(f"--device: expected cpu, cuda or cuda:N, got {args.device}")
+    result = bench_host.run(policies, envs, args.steps, args.collect, args.device, args.threads, args.seed)
+    return bench_host.format_table(result), result
 
 
 def _bench_warp(parser: argparse.ArgumentParser, args: argparse.Namespace) -> tuple[str, dict]:

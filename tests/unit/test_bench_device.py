@@ -19,6 +19,8 @@ ROOT = Path(__file__).resolve().parents[2]
         "orchestrator.bench.device, orchestrator.bench.__main__",
         # scripts/device-warp.sh: the Warp benchmark, the simulator and its tests' imports
         "orchestrator.bench.warp_sim, workers.sim.warp_sim, workers.sim.env",
+        # and its host benchmark and policy-device tests
+        "orchestrator.bench.host, workers.task_policy, workers.learners.ppo",
     ],
 )
 def test_the_device_checks_import_only_torch_numpy_and_mujoco(modules):
