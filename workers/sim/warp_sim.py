@@ -82,14 +82,13 @@ class WarpSim(Simulator):
     def _reset_unstable(self) -> None:
         """Reset worlds with a non-finite or huge qpos, qvel or qacc to qpos0 at rest, counting MuJoCo's warning."""
         p = self.physics
-        bad = {}
-        for name, warning in _UNSTABLE.items():
-            values = getattr(p, name)
-            ok = (torch.isfinite(values) & (values.abs() <= mujoco.mjMAXVAL)).all(dim=1)
-            bad[warning] = (~ok).cpu().numpy()
-        unstable = np.logical_or.reduce(list(bad.values()))
-        if not unstable.any():
+        fields = [getattr(p, name) for name in _UNSTABLE]
+        checks = [(torch.isfinite(v) & (v.abs() <= mujoco.mjMAXVAL)).all(dim=1) for v in fields]
+        ok = torch.stack(checks).cpu().numpy()  # [3, N], in _UNSTABLE's order: one device-to-host copy
+        if ok.all():
             return
+        bad = {warning: ~ok[i] for i, warning in enumerate(_UNSTABLE.values())}
+        unstable = ~ok.all(axis=0)
         for warning, rows in bad.items():
             self._warnings[rows, int(warning)] += 1
         ids = np.flatnonzero(unstable)
@@ -98,7 +97,12 @@ class WarpSim(Simulator):
 
     def _arrays(self) -> PhysicsArrays:
         p = self.physics
-        return PhysicsArrays(*(_host(t) for t in (p.qpos, p.qvel, p.xpos, p.xquat, p.cvel, p.subtree_com)))
+        views = (p.qpos, p.qvel, p.xpos, p.xquat, p.cvel, p.subtree_com)
+        # One device-to-host copy of all six (on a GPU, one transfer and one synchronisation per step).
+        flat = torch.cat([v.reshape(self.num_envs, -1) for v in views], dim=1).cpu().numpy().astype(np.float64)
+        widths = np.cumsum([v[0].numel() for v in views])[:-1]
+        parts = np.split(flat, widths, axis=1)
+        return PhysicsArrays(*(a.reshape(v.shape) for a, v in zip(parts, views, strict=True)))
 
     def _contact_falls(self) -> np.ndarray:
         world, geom = self.physics.contacts()
@@ -135,6 +139,3 @@ class WarpSim(Simulator):
         """[N] bool: environments whose contacts or constraint rows did not fit (`WarpPhysics.overflowed`)."""
         return self.physics.overflowed()
 
-
-def _host(t: torch.Tensor) -> np.ndarray:
-    return t.detach().cpu().numpy().astype(np.float64)
