@@ -138,4 +138,3 @@ class WarpSim(Simulator):
     def overflowed(self) -> np.ndarray:
         """[N] bool: environments whose contacts or constraint rows did not fit (`WarpPhysics.overflowed`)."""
         return self.physics.overflowed()
-
