@@ -143,14 +143,16 @@ def mlp(state_dim: int, action_dim: int, seed: int):
     ).eval()  # fmt: skip
 
 
-def make_mlp_policy(state_dim: int, action_dim: int, seed: int):
+def make_mlp_policy(state_dim: int, action_dim: int, seed: int, device: str = "cpu"):
+    """`mlp` as a NumPy-in, NumPy-out policy whose network runs on `device` (the state is copied there and the
+    actions back, as a rollout worker's policy does on its simulator's device)."""
     import torch
 
-    net = mlp(state_dim, action_dim, seed)
+    net = mlp(state_dim, action_dim, seed).to(device)
 
     def policy(state: np.ndarray) -> np.ndarray:
         with torch.inference_mode():
-            return net(torch.from_numpy(state)).numpy()
+            return net(torch.from_numpy(state).to(device)).cpu().numpy()
 
     return policy
 

@@ -16,8 +16,9 @@ report is their median.
   positions (`WarpPhysics.set_state`), so the figure includes both.
 - physics only: the same worlds under constant controls, no policy: the simulator's own ceiling.
 - interface: `WarpSim` (what `sim.backend=warp` runs in a rollout worker today) with N worlds, driven by the
-  same MLP on the CPU through the simulator interface: NumPy in and out, the body arrays copied to the host
-  every control step, features, contact falls and resets as the rollout worker has them.
+  same MLP on the device, as a rollout worker's policy runs (`Policy.to`), through the simulator interface:
+  NumPy in and out, the body arrays copied to the host every control step, the features computed there and
+  copied to the MLP, its actions copied back, contact falls and resets as the rollout worker has them.
 - cpu: `BatchedSim` (MuJoCo C, `mujoco.batch`) with `cpu_envs` environments stepped on `cpu_threads` threads
   (default every core), the same MLP on the CPU with as many torch threads, full simulator interface
   (features, contact falls, resets): `bench sim`'s batched side.
@@ -122,7 +123,7 @@ def run_worlds(
     cpu_sim = BatchedSim(character, library, cpu_envs, config, seed=seed)
     cpu = BatchedRunner(cpu_sim, make_mlp_policy(cpu_sim.state_dim, cpu_sim.action_dim, seed))
     warp_sim = make_sim(character, library, nworld, replace(config, backend="warp", device=device), seed=seed)
-    interface = BatchedRunner(warp_sim, make_mlp_policy(warp_sim.state_dim, warp_sim.action_dim, seed))
+    interface = BatchedRunner(warp_sim, make_mlp_policy(warp_sim.state_dim, warp_sim.action_dim, seed, device))
     sides = {"warp": warp, "physics": physics, "interface": interface, "cpu": cpu}
     rates = interleave(sides, pairs, block_seconds)
     ratios = rates["warp"] / rates["cpu"]
