@@ -51,7 +51,7 @@ def measure(
             f"seed={seed}",
             "algo.loop.warmup=0",
             f"sim.backend={sim}",
-            f"sim.device={sim_device}",
+            f"sim.device={sim_device if sim == 'warp' else 'cpu'}",  # MuJoCo C runs on the CPU only
         ]
         cfg = validate(compose(overrides))
         rt, trainer = untracked_trainer(cfg)

@@ -119,9 +119,20 @@ def test_bench_pipeline_runs_a_method_on_each_simulator_engine(tmp_path, capsys)
     pytest.importorskip("mujoco_warp")
     out = tmp_path / "pipeline.json"
     argv = ["pipeline", "--algos", "tracker", "--runtimes", "local", "--workers", "1", "--iterations", "2"]
+    # --sim-device names the warp engine's device only: MuJoCo C stays on the CPU (a GPU here or not).
     argv += ["--warmup", "1", "--envs", "4", "--sim", "mujoco,warp", "--sim-device", "cpu", "--out", str(out)]
     assert main(argv) == 0
     rows = json.loads(out.read_text())["results"]
     assert [r["sim"] for r in rows] == ["mujoco", "warp:cpu"]
     assert all(r["samples_per_s"] > 0 and r["updates_per_s"] > 0 for r in rows)
     assert "warp:cpu" in capsys.readouterr().out
+
+
+def test_bench_pipeline_on_mujoco_c_ignores_the_warp_device(tmp_path):
+    """`--sim-device` (cuda by default) is the warp engine's: a MuJoCo C pipeline runs on the CPU whatever it says."""
+    out = tmp_path / "pipeline.json"
+    argv = ["pipeline", "--algos", "tracker", "--runtimes", "local", "--workers", "1", "--iterations", "1"]
+    argv += ["--warmup", "0", "--envs", "2", "--sim", "mujoco", "--sim-device", "cuda", "--out", str(out)]
+    assert main(argv) == 0
+    (row,) = json.loads(out.read_text())["results"]
+    assert row["sim"] == "mujoco" and row["samples_per_s"] > 0
