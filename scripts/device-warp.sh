@@ -14,7 +14,8 @@
 # QUICK=1 (or WORLDS=a,b,...) benchmarks fewer world counts. The checks write their output under $OUT when it is
 # set: the Warp tests on cuda (and the policies' on cuda against the CPU), the equivalence run, `bench sim --backend
 # warp --device cuda` against MuJoCo C on all the machine's cores, and `bench host --device cuda` (a worker's host work
-# per control step beside its policy on the GPU).
+# per control step beside its policy on the GPU), and `bench pipeline --runtimes local --sim mujoco,warp` for the
+# tracker and AMP (MuJoCo C on one thread there: the local runtime steps one worker in the benchmark's process).
 set -e
 cd "$(dirname "$0")/.."
 DIR=.device/warp
@@ -25,6 +26,9 @@ PY="${PYTHON:-python3}"
 PART_MIB="${PART_MIB:-58}"
 WARP=warp-lang==1.19.0
 SMALL="mujoco==4.0.0 mujoco-core==4.0.0 mujoco-studio==4.0.0 glfw==2.11.0 pyopengl==3.1.10 mujoco-warp==4.0.0"
+# What `bench pipeline --runtimes local` needs beside those (no ray, mlflow or scipy on its path; constraints.txt's pins).
+PIPELINE="hydra-core==1.3.8 omegaconf==2.3.1 PyYAML==6.0.3 tqdm==4.70.1"
+ANTLR=antlr4-python3-runtime==4.9.3  # hydra's parser runtime: an sdist only, built into a wheel here
 
 download() {
     dest=$1
@@ -37,8 +41,12 @@ download() {
 prepare() {
     rm -rf "$DIR" && mkdir -p "$DIR/wheels" "$DIR/big"
     # shellcheck disable=SC2086
-    download "$DIR/wheels" $SMALL
+    download "$DIR/wheels" $SMALL $PIPELINE
+    "$PY" -m pip wheel --quiet --no-deps -w "$DIR/wheels" "$ANTLR"
     download "$DIR/big" "$WARP"
+    # The bundled clips come with pybullet (a large wheel), which the GPU machine lacks: carry a copy of them
+    # (1.4 MiB), read through MOCAP_MOTION_DIR.
+    cp -r "$("$PY" -c 'import pybullet_data; print(pybullet_data.getDataPath())')/data/motions" "$DIR/wheels/motions"
     wheel=$(ls "$DIR"/big/warp_lang-*.whl)
     name=$(basename "$wheel")
     (cd "$DIR/big" && sha256sum "$name") >"$DIR/wheels/warp.sha256"
@@ -93,7 +101,7 @@ run_checks() {
     install
     out="${OUT:-$STASH/out}"
     mkdir -p "$out"
-    export PYTHONPATH="$STASH/site:." PYTHONUNBUFFERED=1 MOCAP_WARP_DEVICE="$DEVICE"
+    export PYTHONPATH="$STASH/site:." PYTHONUNBUFFERED=1 MOCAP_WARP_DEVICE="$DEVICE" MOCAP_MOTION_DIR="$DIR_ABS/wheels/motions"
     nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader || true
     "$PY" -c "import warp, mujoco_warp, torch; warp.init(); print('warp', warp.__version__, 'torch', torch.__version__)"
     status=0
@@ -106,9 +114,14 @@ run_checks() {
     "$PY" -m orchestrator.bench sim --backend warp --device "$DEVICE" --worlds "${WORLDS:-$worlds}" \
         --out "$out/bench-sim.json" >"$out/bench-sim.txt" 2>&1 || status=1
     tail -n 12 "$out/bench-sim.txt"
-    "$PY" -m orchestrator.bench host --device "$DEVICE" --policies vae,vae-paper,tracker --envs 1024,4096,16384 \
+    "$PY" -m orchestrator.bench host --device "$DEVICE" --policies vae,vae-paper,tracker --envs "${HOST_ENVS:-1024,4096,16384}" \
         --out "$out/bench-host.json" >"$out/bench-host.txt" 2>&1 || status=1
     tail -n 12 "$out/bench-host.txt"
+    # End to end, local runtime (no Ray there), nothing tracked: the tracker and AMP on each engine.
+    "$PY" -m orchestrator.bench pipeline --algos tracker,amp --runtimes local --workers 1 \
+        --envs "${PIPELINE_ENVS:-1024}" --iterations 2 --warmup 1 --sim mujoco,warp --sim-device "$DEVICE" \
+        --out "$out/bench-pipeline.json" >"$out/bench-pipeline.txt" 2>&1 || status=1
+    tail -n 8 "$out/bench-pipeline.txt"
     exit $status
 }
 

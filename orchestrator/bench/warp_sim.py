@@ -195,6 +195,7 @@ def format_table(r: dict) -> str:
     lines.append(
         "control/s: control steps per second summed over worlds (physics/s: x K substeps); warp/C: median over "
         "rounds of the Warp+MLP rate over MuJoCo C's with the same MLP; WarpSim: the simulator interface a rollout "
-        "worker runs on warp today (host copies, MLP on the CPU); resets/step: worlds reset a control step"
+        "worker runs on warp today (the state copied to the host and back, the MLP on the device); resets/step: worlds "
+        "reset a control step"
     )
     return "\n".join(lines)

@@ -13,11 +13,6 @@ import logging
 import threading
 import time
 
-import psutil
-from mlflow.system_metrics.metrics.cpu_monitor import CPUMonitor
-from mlflow.system_metrics.metrics.disk_monitor import DiskMonitor
-from mlflow.system_metrics.metrics.network_monitor import NetworkMonitor
-
 log = logging.getLogger(__name__)
 
 PREFIX = "system/"
@@ -25,6 +20,12 @@ PREFIX = "system/"
 
 class SystemMetrics:
     def __init__(self, interval_s: float = 10.0):
+        # Imported here, not with the module: a run that tracks nothing never imports mlflow.
+        import psutil
+        from mlflow.system_metrics.metrics.cpu_monitor import CPUMonitor
+        from mlflow.system_metrics.metrics.disk_monitor import DiskMonitor
+        from mlflow.system_metrics.metrics.network_monitor import NetworkMonitor
+
         self.interval_s = interval_s
         self.monitors = [CPUMonitor(), DiskMonitor(), NetworkMonitor()]
         self.process = psutil.Process()

@@ -3,6 +3,7 @@ times a paper-size iteration's learner updates (shrunk here)."""
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -80,3 +81,22 @@ def test_a_paper_iteration_times_eight_updates_of_each_learner(monkeypatch):
     assert out["iteration_s"] == pytest.approx(out["world_model_s"] + out["vae_s"]) and out["vae_s"] > 0
     text = device.format_report({"torch": "x", "threads": 1, "machine": {"cpus": 2}, "devices": {}})
     assert text.startswith("device check: torch x")
+
+
+def test_a_local_pipeline_runs_without_ray_mlflow_scipy_matplotlib_or_pybullet():
+    """What the GPU machine can run with a few small wheels (hydra, omegaconf, PyYAML, tqdm) and the clips
+    carried in a folder (MOCAP_MOTION_DIR): the local pipeline of the tracker and AMP, with nothing tracked."""
+    import pybullet_data
+
+    motions = Path(pybullet_data.getDataPath()) / "data" / "motions"
+    blocked = ("ray", "mlflow", "scipy", "pandas", "matplotlib", "gymnasium", "pybullet", "pybullet_data", "dtw")
+    code = (
+        f"import sys\nfor m in {blocked!r}: sys.modules[m] = None\n"
+        "from orchestrator.bench.__main__ import main\n"
+        "sys.exit(main(['pipeline', '--algos', 'tracker,amp', '--runtimes', 'local', '--workers', '1',"
+        " '--iterations', '1', '--warmup', '0', '--envs', '2']))\n"
+    )
+    env = {**os.environ, "MOCAP_MOTION_DIR": str(motions)}
+    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, env=env)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert "tracker" in out.stdout and "amp" in out.stdout

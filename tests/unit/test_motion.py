@@ -20,6 +20,24 @@ def test_all_bundled_clips_are_found():
     ]  # fmt: skip
 
 
+def test_the_bundled_clips_can_come_from_a_folder_named_in_the_environment(character, tmp_path, monkeypatch):
+    """MOCAP_MOTION_DIR: a copy of pybullet_data's clips, for a machine without pybullet (the GPU machine)."""
+    import shutil
+
+    from workers.motion.errors import ClipError
+    from workers.motion.formats import bundled_motion_dir
+
+    shutil.copy(bundled_motion_dir() / "humanoid3d_walk.txt", tmp_path)
+    monkeypatch.setenv("MOCAP_MOTION_DIR", str(tmp_path))
+    assert bundled_clip_names() == ["humanoid3d_walk"]
+    (tmp_path / "humanoid3d_walk.txt").write_text("not a clip")  # the folder's file is the one read
+    with pytest.raises(ClipError, match="humanoid3d_walk"):
+        load_raw(character, "humanoid3d_walk")
+    monkeypatch.setenv("MOCAP_MOTION_DIR", str(tmp_path / "missing"))
+    with pytest.raises(ClipError, match="MOCAP_MOTION_DIR names no folder"):
+        bundled_clip_names()
+
+
 @pytest.mark.parametrize("name", BUNDLED)
 def test_every_bundled_clip_loads(character, clip_cache, name):
     clip = load_clip(character, name, fps=30, cache_dir=clip_cache)

@@ -17,7 +17,6 @@ Everything here is plain NumPy: sequences are arrays of relative positions
 from __future__ import annotations
 
 import numpy as np
-from dtw import dtw
 
 
 def relative_positions(xpos: np.ndarray, root: int = 0, heading_inverse: np.ndarray | None = None) -> np.ndarray:
@@ -90,6 +89,8 @@ def dtw_pose_error(a: np.ndarray, b: np.ndarray, step_pattern: str = "symmetric2
       "index_b":  [L] indices into b
     """
     cost = pose_error_matrix(a, b)
+    from dtw import dtw  # dtw-python (and SciPy under it) imported when an alignment is made
+
     alignment = dtw(cost, step_pattern=step_pattern)
     index_a, index_b = np.asarray(alignment.index1), np.asarray(alignment.index2)
     per_step = cost[index_a, index_b]

@@ -7,15 +7,25 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 from workers.body.character import Character
 from workers.motion.clip import RawClip
 from workers.motion.errors import ClipError
 
+MOTION_DIR_ENV = "MOCAP_MOTION_DIR"
+
 
 def bundled_motion_dir() -> Path:
-    """The DeepMimic clips shipped inside the `pybullet` package."""
+    """The DeepMimic clips shipped inside the `pybullet` package, or the folder `MOCAP_MOTION_DIR` names: a copy
+    of that package's `data/motions`, for a machine without pybullet (scripts/device-warp.sh carries one to the
+    GPU machine)."""
+    override = os.environ.get(MOTION_DIR_ENV)
+    if override:
+        if not Path(override).is_dir():
+            raise ClipError(override, f"{MOTION_DIR_ENV} names no folder (a copy of pybullet_data's data/motions)")
+        return Path(override)
     try:
         import pybullet_data
     except ImportError as e:  # pragma: no cover - pybullet is a dependency
