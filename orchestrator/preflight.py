@@ -58,6 +58,9 @@ def check(cfg: Config) -> None:
         tracking_server(cfg.tracking.uri)
     learner_devices(cfg)
     sim_device(cfg)
+    r = cfg.runtime
+    if uses_ray(r) and r.address and (r.learner_gpus > 0 or r.worker_gpus > 0):
+        cluster_gpus(cfg)  # a learner's or a rollout worker's share, whatever the simulator engine
     if cfg.algo.needs:
         from orchestrator.stages import plan  # loads mlflow: only for a method with upstream stages
 
@@ -118,8 +121,6 @@ def learner_devices(cfg: Config) -> None:
             "runtime.learner_device=cuda: a learner actor on the cluster at runtime.address sees only the GPUs Ray "
             "assigns it; set runtime.learner_gpus (e.g. 1)"
         )
-    if not here and r.learner_gpus > 0:
-        cluster_gpus(cfg)
 
 
 def sim_device(cfg: Config) -> None:
@@ -137,7 +138,6 @@ def sim_device(cfg: Config) -> None:
                 f"sim.device={cfg.sim.device}: a rollout worker on the cluster at runtime.address sees only the GPUs "
                 "Ray assigns it; set runtime.worker_gpus (e.g. 0.25)"
             )
-        cluster_gpus(cfg)
         return
     index = int(cfg.sim.device.partition(":")[2] or 0)
     if index >= torch.cuda.device_count():

@@ -324,11 +324,13 @@ def test_a_sweep_on_the_cluster_puts_its_parent_and_children_in_postgres(cluster
     assert "| 10.0 | 1 |" in (stored / "comparison.md").read_text()
 
 
-def test_a_gpu_the_cluster_does_not_have_is_refused_before_anything_is_written(cluster, tmp_path):
-    """The cluster has no GPU: asking one for each learner is one line naming the key and what the cluster has,
-    before an MLflow run is made or the run directory is written (Ray would wait for it without end)."""
+@pytest.mark.parametrize("key", ["learner_gpus", "worker_gpus"])
+def test_a_gpu_the_cluster_does_not_have_is_refused_before_anything_is_written(cluster, tmp_path, key):
+    """The cluster has no GPU: asking one for each learner, or for each rollout worker (whatever the simulator
+    engine: the share is reserved), is one line naming the key and what the cluster has, before an MLflow run is
+    made or the run directory is written (Ray would wait for it without end)."""
     address = cluster.state["ray"]["head"]["gcs_address"]
-    args = [f"runtime.address={address}", "runtime.learner_gpus=1", f"tracking.uri={cluster.tracking_uri}"]
+    args = [f"runtime.address={address}", f"runtime.{key}=1", f"tracking.uri={cluster.tracking_uri}"]
     args += ["runtime=ray", "scale=smoke", "motion=walk", "progress=false", f"run_dir={tmp_path / 'run'}"]
     args += ["tracking.experiment=gpu-refusal"]
     proc = subprocess.run(
@@ -337,7 +339,7 @@ def test_a_gpu_the_cluster_does_not_have_is_refused_before_anything_is_written(c
     lines = proc.stderr.strip().splitlines()
     assert proc.returncode == 2 and len(lines) == 1, proc.stderr[-2000:]
     assert (
-        lines[0] == f"config error: runtime.learner_gpus=1: the Ray cluster at runtime.address={address} has 0 GPU(s)"
+        lines[0] == f"config error: runtime.{key}=1: the Ray cluster at runtime.address={address} has 0 GPU(s)"
     )
     assert not (tmp_path / "run").exists()
     with cluster.db() as cur:
