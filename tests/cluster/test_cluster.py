@@ -338,9 +338,7 @@ def test_a_gpu_the_cluster_does_not_have_is_refused_before_anything_is_written(c
     )
     lines = proc.stderr.strip().splitlines()
     assert proc.returncode == 2 and len(lines) == 1, proc.stderr[-2000:]
-    assert (
-        lines[0] == f"config error: runtime.{key}=1: the Ray cluster at runtime.address={address} has 0 GPU(s)"
-    )
+    assert lines[0] == f"config error: runtime.{key}=1: the Ray cluster at runtime.address={address} has 0 GPU(s)"
     assert not (tmp_path / "run").exists()
     with cluster.db() as cur:
         cur.execute("SELECT count(*) FROM experiments WHERE name = 'gpu-refusal'")
