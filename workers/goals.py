@@ -6,12 +6,12 @@ steps into one success per episode. Both are NumPy. One control step, in this or
 
     g = sampler.goals.copy()                          # the goals in force during the step
     result = sim.step(policy(obs, g))
-    bs = pack(result.kin)                             # workers.models.body_state.pack
+    bs = result.body_states                           # [N, B, 13] body states
     changed = sampler.advance(sim, bs)                # the next step's goals
     tracker.update(bs, g, result.fell, changed)
     ended = np.flatnonzero(result.done)
     success = tracker.result(ended); tracker.reset(ended)
-    sim.reset(ended); sampler.reset(sim, pack(sim.kin_state()), ended)
+    sim.reset(ended); sampler.reset(sim, sim.body_states(), ended)
 
 A goal is redrawn with probability change_rate / control_hz after each step, so goals last
 1 / change_rate seconds on average (ControlVAE changes them every 72 control steps: 3.6 s at

@@ -39,7 +39,6 @@ import torch
 from workers.body.character import Character
 from workers.evaluation.controller import relative_position_error
 from workers.learners.base import Weights
-from workers.models import body_state
 from workers.motion.library import MotionLibrary
 from workers.policies import Policy
 from workers.recorders import Recorder
@@ -124,7 +123,7 @@ class RolloutWorker:
         final_obs: list[np.ndarray] = []
         for r in self.recorders:
             r.begin(steps, m, sim)
-        bs = body_state.pack(sim.kin_state())
+        bs = sim.body_states()
         for t in range(steps):
             states[t] = bs
             clip_id[t] = sim.clip_id
@@ -136,7 +135,7 @@ class RolloutWorker:
                     extras[k] = np.empty((steps,) + v.shape, v.dtype)
                 extras[k][t] = v
             result = sim.step(a)
-            next_states[t] = body_state.pack(result.kin)
+            next_states[t] = result.body_states
             done[t] = result.done
             truncated[t] = result.timeout | result.clip_ended
             for r in self.recorders:
@@ -154,7 +153,7 @@ class RolloutWorker:
                 sim.reset(ids)
                 policy.episodes_reset(ids)
                 bs = bs.copy()
-                bs[ids] = body_state.pack(sim.kin_state()[ids])
+                bs[ids] = sim.body_states(ids)
                 for r in self.recorders:
                     if hasattr(r, "after_reset"):
                         r.after_reset(sim, ids)
@@ -197,7 +196,7 @@ class RolloutWorker:
             states = np.empty((horizon + 1, m, sim.character.num_bodies, 13), np.float32)
             actions = np.empty((horizon, m, sim.action_dim), np.float32)
             length, fell, error = np.zeros(m, int), np.zeros(m, bool), np.zeros(m)
-            bs = body_state.pack(sim.kin_state())
+            bs = sim.body_states()
             states[0] = bs
             for t in range(horizon):
                 running = ~fell & (t < limit)
@@ -206,7 +205,7 @@ class RolloutWorker:
                 a, _ = self.policy.act(sim, bs)
                 actions[t] = a
                 result = sim.step(a)
-                bs = body_state.pack(result.kin)
+                bs = result.body_states
                 states[t + 1] = bs
                 err = relative_position_error(result.kin.xpos, sim.reference_state().xpos)
                 length[running] += 1

@@ -131,7 +131,7 @@ class TaskRolloutPolicy(Policy, Recorder):
         self.terms: dict[str, np.ndarray] = {}
 
     def record(self, t: int, sim: Simulator, result: StepResult) -> None:
-        bs, goal = torch.from_numpy(body_state.pack(result.kin)), torch.from_numpy(self.goals.goals)
+        bs, goal = torch.from_numpy(result.body_states), torch.from_numpy(self.goals.goals)
         terms = task_terms(self.config.task, bs, goal)
         if self.config.reward == "progress":
             self.reward[t] = self.before - terms["distance"].numpy()
@@ -142,7 +142,7 @@ class TaskRolloutPolicy(Policy, Recorder):
         self.goals.advance(sim, bs.numpy())
 
     def after_reset(self, sim: Simulator, ids: np.ndarray) -> None:
-        self.goals.reset(sim, body_state.pack(sim.kin_state()), ids)
+        self.goals.reset(sim, sim.body_states(), ids)
 
     def finish(self) -> dict[str, np.ndarray]:
         return {"reward": self.reward, **{f"reward/{k}": v for k, v in self.terms.items()}}

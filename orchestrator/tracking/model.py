@@ -25,7 +25,6 @@ import torch
 from orchestrator.tracking.base import RunLogger
 from workers.body.character import Character
 from workers.learners.base import Weights
-from workers.models import body_state
 from workers.motion.library import MotionLibrary
 from workers.policies import Policy
 from workers.sim.env import SimConfig, make_sim
@@ -55,7 +54,7 @@ def deployable(
     policy.set_weights(weights)
     sim = make_sim(character, library, 1, sim_config, seed=seed)
     sim.reset(np.zeros(1, int), np.zeros(1, int), np.zeros(1, int))
-    found = policy.deployable(sim, body_state.pack(sim.kin_state()))
+    found = policy.deployable(sim, sim.body_states())
     if found is None:
         return None
     module, example = found

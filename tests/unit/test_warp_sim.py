@@ -100,6 +100,31 @@ def test_steps_match_mujoco_c(warp, mujoco_c):
 
 
 @pytest.mark.slow
+def test_what_a_step_reports_is_made_on_the_device(warp):
+    """The body states, the KinState and s of a step are computed where the worlds live and copied once:
+    the same numbers, to float32 rounding, as the host's computation from the physics arrays (each body
+    origin's velocity v + w x r in float64, then packed; s in NumPy); the KinState is the body states widened."""
+    from workers.models.body_state import pack
+
+    reset_both([warp], [WALK, WALK, KICK, KICK], [5, 20, 3, 10])
+    np.testing.assert_array_equal(warp.body_states(), pack(warp.kin_state()))
+    np.testing.assert_array_equal(warp.body_states(np.array([2, 0])), warp.body_states()[[2, 0]])
+    r = warp.step(tracking_actions(warp, np.random.default_rng(2)))
+    assert r.packed is not None and r.features is not None  # the backend's, not derived on the host
+    assert r.body_states.dtype == np.float32 and r.body_states.shape == (N, warp.character.num_bodies, 13)
+    np.testing.assert_array_equal(r.body_states, pack(r.kin))
+    a = warp._arrays()  # float64 copies of the device arrays
+    w, r_com = a.cvel[:, 1:, :3], a.xpos[:, 1:] - a.subtree_com[:, 1:2]
+    lin = a.cvel[:, 1:, 3:] + np.cross(w, r_com)
+    assert np.abs(lin).max() > 0.1  # moving bodies: a wrong sign or order of the cross product would show
+    np.testing.assert_allclose(r.kin.lin_vel, lin, rtol=0, atol=1e-5)
+    np.testing.assert_array_equal(r.kin.qpos, a.qpos)
+    np.testing.assert_array_equal(r.kin.xquat, a.xquat[:, 1:])
+    np.testing.assert_allclose(r.state, state_features(r.kin), rtol=0, atol=1e-5)
+    assert r.state.dtype == np.float32
+
+
+@pytest.mark.slow
 def test_falls_on_the_same_control_step(warp, mujoco_c):
     """Pushed sideways or forwards (2-3 m/s at the root) while holding the start pose, or with the servos
     pulling every joint to zero: every character falls within 30 control steps, on the same step on both

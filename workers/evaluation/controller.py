@@ -52,7 +52,7 @@ def evaluation_mode(controller: torch.nn.Module | None) -> Iterator[None]:
 
 def sim_features(sim: Simulator) -> torch.Tensor:
     """s [N, D] of the simulated characters, as the learners compute it (float32 body states)."""
-    return body_state.features(torch.from_numpy(body_state.pack(sim.kin_state())))
+    return body_state.features(torch.from_numpy(sim.body_states()))
 
 
 def reference_targets(library: MotionLibrary) -> Policy:
@@ -194,7 +194,7 @@ def tracking_error(
             if policy is not None:
                 actions = np.asarray(policy(sim))
             else:
-                bs = body_state.pack(sim.kin_state())
+                bs = sim.body_states()
                 s = body_state.features(torch.from_numpy(bs))
                 posterior, _ = controller.encode(s, next_goal(controller.goal, sim, bs))
                 actions = controller.act(s, posterior.mean).numpy()

@@ -55,7 +55,6 @@ def pose_error_episodes(
     mean (m), "seconds": mean episode length (s), "episodes": [{"dtw", "dtw_eq10", "per_frame", "seconds"}...],
     "curve_t": [K] seconds, "curve": [K] mean DTW cost at that time over the episodes still running}.
     """
-    from workers.models import body_state
 
     config = without_tracking_termination(sim_config)
     sim = make_sim(character, library, num_episodes, config, seed=seed)
@@ -65,7 +64,7 @@ def pose_error_episodes(
     sim_xpos = np.zeros((steps, num_episodes, character.num_bodies, 3))  # for Eq. 10 as written
     alive = np.ones(num_episodes, bool)
     length = np.zeros(num_episodes, int)
-    bs = body_state.pack(sim.kin_state())
+    bs = sim.body_states()
     for t in range(steps):
         result = sim.step(act(sim, bs))
         sim_pos[t] = _relative(result.kin)
@@ -74,7 +73,7 @@ def pose_error_episodes(
         alive &= ~(result.fell | result.clip_ended)
         if not alive.any():
             break
-        bs = body_state.pack(result.kin)
+        bs = result.body_states
     episodes, curves = [], []
     for e in range(num_episodes):
         n = int(length[e])

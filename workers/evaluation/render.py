@@ -136,7 +136,7 @@ def record_tracking(
     qpos, ref = [sim.kin_state().qpos[0]], [sim.reference_state().qpos[0]]
     with evaluation_mode(controller):
         for _ in range(steps):
-            bs = body_state.pack(sim.kin_state())
+            bs = sim.body_states()
             s = body_state.features(torch.from_numpy(bs))
             posterior, _ = controller.encode(s, next_goal(controller.goal, sim, bs))
             result = sim.step(controller.act(s, posterior.mean).numpy())
@@ -156,7 +156,6 @@ def record_policy_episode(
     """One episode of `act` (sim, body states -> actions, as `pose_error_episodes` takes it) from a reference
     start drawn by the simulator, with its reference, until `max_seconds`, `FALL_TAIL_S` after a fall or the
     clip's end."""
-    from workers.models import body_state
     from workers.sim.env import make_sim, without_tracking_termination
 
     config = without_tracking_termination(sim_config)
@@ -164,7 +163,7 @@ def record_policy_episode(
     steps = max(1, int(round(max_seconds * config.control_hz)))
     tail = int(round(FALL_TAIL_S * config.control_hz))
     qpos, ref = [sim.kin_state().qpos[0]], [sim.reference_state().qpos[0]]
-    bs = body_state.pack(sim.kin_state())
+    bs = sim.body_states()
     end = steps
     for t in range(1, steps + 1):
         result = sim.step(act(sim, bs))
@@ -176,7 +175,7 @@ def record_policy_episode(
             end = min(t + tail, steps)
         if t >= end:
             break
-        bs = body_state.pack(result.kin)
+        bs = result.body_states
     return Recording(f"policy-{_slug(library.names[int(sim.clip_id[0])])}", np.stack(qpos), np.stack(ref), sim.model)
 
 

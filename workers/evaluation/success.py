@@ -15,7 +15,6 @@ import numpy as np
 from workers.body.character import Character
 from workers.evaluation.imitation import Actor
 from workers.evaluation.pose_error import relative_positions
-from workers.models import body_state
 from workers.motion.library import MotionLibrary
 from workers.sim.env import SimConfig, make_sim, without_tracking_termination
 
@@ -79,7 +78,7 @@ def tracking_success(
     sim.reset(clips, clips, np.zeros(n, int))
     global_sum, local_sum = np.zeros(n), np.zeros(n)
     max_joint, max_mean = np.zeros(n), np.zeros(n)  # worst e_j and worst mean_j e_j over the steps
-    bs = body_state.pack(sim.kin_state())
+    bs = sim.body_states()
     for t in range(int(steps.max())):
         result = sim.step(np.asarray(act(sim, bs)))
         ref = sim.reference_state()
@@ -90,7 +89,7 @@ def tracking_success(
         local_sum += np.where(active, local.mean(-1), 0.0)
         max_joint = np.where(active, np.maximum(max_joint, err.max(-1)), max_joint)
         max_mean = np.where(active, np.maximum(max_mean, err.mean(-1)), max_mean)
-        bs = body_state.pack(result.kin)
+        bs = result.body_states
     mpjpe = 1000.0 * global_sum / steps
     mpjpe_local = 1000.0 * local_sum / steps
     every_joint = max_joint <= threshold

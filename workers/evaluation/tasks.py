@@ -30,7 +30,6 @@ import torch
 from workers.body.character import Character
 from workers.goals import SuccessTracker
 from workers.losses.task import task_loss
-from workers.models import body_state
 from workers.motion.library import MotionLibrary
 from workers.sim.env import SimConfig, make_sim, without_tracking_termination
 from workers.task_policy import TaskRolloutPolicy
@@ -61,14 +60,14 @@ def evaluate_task_policy(
     curve = np.full(steps, np.nan)
     roots = np.full((steps + 1, num_goals, 2), np.nan)
     goals = np.zeros((steps, num_goals, policy.goals.goals.shape[1]), np.float32)
-    bs = body_state.pack(sim.kin_state())
+    bs = sim.body_states()
     roots[0] = bs[:, 0, :2]
     try:
         for t in range(steps):
             applied, decoded = policy.actions(sim, bs)
             goals[t] = policy.goals.goals
             result = sim.step(applied)
-            bs = body_state.pack(result.kin)
+            bs = result.body_states
             goal = torch.from_numpy(policy.goals.goals)
             total, terms = task_loss(task, torch.from_numpy(bs), goal, policy.config.weights, policy.config.fall_height)
             r = np.exp(-(total - policy.config.weights.get("fall", 1.0) * terms["fall"]).numpy())

@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import abc
 import re
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from functools import cached_property
 from typing import Any, NamedTuple
@@ -124,6 +125,9 @@ class StepResult:
     clip_ended: np.ndarray  # [N] bool
     timeout: np.ndarray  # [N] bool
     end_on_fall: bool = True  # whether `fell` ends the episode
+    # What a backend computed where its state lives (MuJoCo Warp: on the device); None: derived from `kin` here.
+    packed: np.ndarray | None = field(default=None, repr=False)  # [N, B, 13] float32 body states
+    features: Callable[[], np.ndarray] | None = field(default=None, repr=False)  # s [N, D], called when read
     done: np.ndarray = field(init=False)
 
     def __post_init__(self) -> None:
@@ -133,11 +137,16 @@ class StepResult:
 
     @cached_property
     def state(self) -> np.ndarray:
-        """[N, D] s of the simulated characters (from `kin`, a copy: the same whenever it is read).
+        """[N, D] s of the simulated characters (from `kin`, or the backend's `features`; the same whenever read).
 
         Lazy because most callers observe through the policy's own features, and computing
         s for every step cost ~4% of a rollout worker's control step at 8 environments."""
-        return state_features(self.kin)
+        return self.features() if self.features is not None else state_features(self.kin)
+
+    @cached_property
+    def body_states(self) -> np.ndarray:
+        """[N, B, 13] float32 body states of the simulated characters (`pack(kin)`, or the backend's)."""
+        return self.packed if self.packed is not None else pack(self.kin)
 
 
 class PhysicsArrays(NamedTuple):
@@ -272,7 +281,7 @@ class Simulator(abc.ABC):
             raise ValueError(f"actions must be [{self.num_envs}, {self.action_dim}], got {list(actions.shape)}")
         self._advance(actions)
         self.steps += 1
-        kin = self.kin_state()
+        kin, packed, features = self._observe()
         frames = self.start_frame + self.steps
         if self.config.tracking_error_m > 0:
             head = self.character.head_body
@@ -294,6 +303,8 @@ class Simulator(abc.ABC):
             clip_ended=clip_ended,
             timeout=timeout,
             end_on_fall=self.config.end_on_fall,
+            packed=packed,
+            features=features,
         )
 
     def switch_reference(self, env_ids: np.ndarray, clip_ids: np.ndarray, frames: np.ndarray) -> None:
@@ -318,6 +329,17 @@ class Simulator(abc.ABC):
         r = xpos - a.subtree_com[:, 1, None, :]
         lin = cvel[..., 3:] + (w[..., _YZX] * r[..., _ZXY] - w[..., _ZXY] * r[..., _YZX])
         return KinState(a.qpos.copy(), a.qvel.copy(), xpos.copy(), a.xquat[:, 1:].copy(), lin, w.copy())
+
+    def body_states(self, env_ids: np.ndarray | None = None) -> np.ndarray:
+        """The body states [N, B, 13] (float32, `workers.models.body_state.pack`) of the simulated characters
+        (rows `env_ids` only, when given): what a trajectory stores and a policy reads."""
+        kin = self.kin_state()
+        return pack(kin if env_ids is None else kin[env_ids])
+
+    def _observe(self) -> tuple[KinState, np.ndarray | None, Callable[[], np.ndarray] | None]:
+        """What a control step reports of the new state: its `KinState`, and optionally the body states and
+        a maker of s that the backend computed itself (`StepResult.packed`, `.features`); here none."""
+        return self.kin_state(), None, None
 
     def reference_state(self) -> KinState:
         """The reference state at each environment's current time."""

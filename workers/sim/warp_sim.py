@@ -8,12 +8,16 @@ failure, clip ends and switches, time limits, the step's result, save and restor
 shared `Simulator`'s, so it is the same code on both backends.
 
 A control step sets the controls of every world and advances them by K physics steps, split
-as BatchedSim splits it (`WarpPhysics.step`). NumPy in and out for now: the body arrays are
-copied from the device after each step into the float64 arrays BatchedSim returns, but MuJoCo
-Warp computes in float32, so they hold float32 values (tests/unit/test_warp_sim.py and
-docs/warp.md compare the two backends). A reset environment holds the float32 rounding of the
-reference state; the state features `reset` returns are the library's precomputed ones, as on
-MuJoCo C.
+as BatchedSim splits it (`WarpPhysics.step`). NumPy in and out: what leaves the device after a
+step is what the step reports, computed on the device first. The body states [N, B, 13] (each
+body's linear velocity moved from the subtree's centre of mass to its origin, and packed) are
+made there in float32 and copied to the host in one transfer with qpos and qvel
+(`StepResult.packed`; the `KinState` holds the same values widened to float64, as BatchedSim's
+arrays are float64); the state features s are computed there too, and copied only when
+`StepResult.state` is read. MuJoCo Warp computes in float32, so all of them hold float32 values
+(tests/unit/test_warp_sim.py and docs/warp.md compare the two backends). A reset environment
+holds the float32 rounding of the reference state; the state features `reset` returns are the
+library's precomputed ones, as on MuJoCo C.
 
 Falls follow BatchedSim's rule: a contact of the new state that involves any geom but the floor
 and the allowed ones (`SimConfig.allowed_contacts`). They are read from MuJoCo Warp's contact
@@ -36,12 +40,16 @@ What MuJoCo C does that MuJoCo Warp does not, and what this class does instead:
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import mujoco
 import numpy as np
 import torch
 
+from workers.models import body_state
 from workers.sim.base import PhysicsArrays, Simulator
 from workers.sim.warp_physics import WarpPhysics
+from workers.types import KinState
 
 _UNSTABLE = {  # MuJoCo C's warning for a non-finite or huge value of each field
     "qpos": mujoco.mjtWarning.mjWARN_BADQPOS,
@@ -103,6 +111,42 @@ class WarpSim(Simulator):
         widths = np.cumsum([v[0].numel() for v in views])[:-1]
         parts = np.split(flat, widths, axis=1)
         return PhysicsArrays(*(a.reshape(v.shape) for a, v in zip(parts, views, strict=True)))
+
+    def _device_body_states(self) -> torch.Tensor:
+        """[N, B, 13] float32 body states on the device: positions, rotations, each body origin's linear velocity
+        (cvel's, given at the root's subtree centre of mass, plus w x r) and angular velocity."""
+        p = self.physics
+        xpos, cvel = p.xpos[:, 1:], p.cvel[:, 1:]
+        w = cvel[..., :3]
+        lin = cvel[..., 3:] + torch.linalg.cross(w, xpos - p.subtree_com[:, 1:2], dim=-1)
+        return torch.cat((xpos, p.xquat[:, 1:], lin, w), dim=-1)
+
+    def _observe(self) -> tuple[KinState, np.ndarray, Callable[[], np.ndarray]]:
+        bs = self._device_body_states()
+        kin, packed = self._to_host(bs)
+        return kin, packed, lambda: body_state.features(bs).cpu().numpy()
+
+    def _to_host(self, bs: torch.Tensor) -> tuple[KinState, np.ndarray]:
+        """The `KinState` (float64) and body states (float32) of device body states: one copy with qpos, qvel."""
+        p, n = self.physics, self.num_envs
+        flat = torch.cat((p.qpos, p.qvel, bs.reshape(n, -1)), dim=1).cpu().numpy()
+        nq, nv = p.qpos.shape[1], p.qvel.shape[1]
+        packed = flat[:, nq + nv :].reshape(bs.shape)
+        parts = (packed[..., part] for part in (body_state.POS, body_state.QUAT, body_state.LIN, body_state.ANG))
+        kin = KinState(
+            flat[:, :nq].astype(np.float64),
+            flat[:, nq : nq + nv].astype(np.float64),
+            *(a.astype(np.float64) for a in parts),
+        )
+        return kin, packed
+
+    def kin_state(self) -> KinState:
+        """The simulated state of all environments (host copies, float64 holding float32 values), made on the device."""
+        return self._to_host(self._device_body_states())[0]
+
+    def body_states(self, env_ids: np.ndarray | None = None) -> np.ndarray:
+        packed = self._to_host(self._device_body_states())[1]
+        return packed if env_ids is None else packed[env_ids]
 
     def _contact_falls(self) -> np.ndarray:
         world, geom = self.physics.contacts()
