@@ -73,6 +73,18 @@ def observe(kind: str, sim: Simulator, bs: np.ndarray) -> np.ndarray:
     return np.concatenate((s, g), axis=-1).astype(np.float32)
 
 
+def observe_on(device: torch.device, kind: str, sim: Simulator, bs: np.ndarray) -> torch.Tensor:
+    """`observe` computed in torch on `device` (float32; the same numbers to float rounding): what a policy
+    beside a simulator that computes on its device (`Simulator.computes_on_device`) observes."""
+    b = torch.as_tensor(bs).to(device)
+    s = body_state.features(b)
+    if kind == "state":
+        return s
+    if kind == "imitation":
+        return torch.cat((s, torch.as_tensor(sim.reference_next_features()).to(device)), dim=-1)
+    return torch.cat((s, next_goal("mimic", sim, bs).to(device)), dim=-1)
+
+
 class Policy:
     """The interface the rollout worker drives. `version` is the published weights' version (-1: none yet)."""
 
@@ -202,15 +214,23 @@ class GaussianPolicy(Policy):
         self.version = int(weights.version)
 
     def observe(self, sim: Simulator, bs: np.ndarray) -> np.ndarray:
+        if sim.computes_on_device:
+            return observe_on(self.device, self.obs, sim, bs).cpu().numpy()
         return observe(self.obs, sim, bs)
+
+    def _observation(self, sim: Simulator, bs: np.ndarray) -> torch.Tensor:
+        """The observation on the policy's device: made there beside a simulator that computes on its device."""
+        if sim.computes_on_device:
+            return observe_on(self.device, self.obs, sim, bs)
+        return self.tensor(observe(self.obs, sim, bs))
 
     @torch.no_grad()
     def act(self, sim: Simulator, bs: np.ndarray) -> tuple[np.ndarray, dict[str, np.ndarray]]:
-        obs = self.observe(sim, bs)
-        actions, log_probs = self.module.act(self.tensor(obs), generator=self.generator)
+        obs = self._observation(sim, bs)
+        actions, log_probs = self.module.act(obs, generator=self.generator)
         actions = actions.cpu().numpy()
         # V(o) is left to the learner, which evaluates it in one batch over the whole rollout.
-        extras = {"obs": obs, "action": actions, "log_prob": log_probs.cpu().numpy()}
+        extras = {"obs": obs.cpu().numpy(), "action": actions, "log_prob": log_probs.cpu().numpy()}
         applied = actions + self.base_action(sim) if self.residual else actions
         return applied, extras
 
@@ -220,7 +240,7 @@ class GaussianPolicy(Policy):
     @torch.no_grad()
     def mean_action(self, sim: Simulator, bs: np.ndarray) -> np.ndarray:
         """The deterministic PD targets [M, A] (evaluation)."""
-        mean = self.module.mean(self.tensor(self.observe(sim, bs))).cpu().numpy()
+        mean = self.module.mean(self._observation(sim, bs)).cpu().numpy()
         return mean + self.base_action(sim) if self.residual else mean
 
 

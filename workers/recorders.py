@@ -19,8 +19,11 @@ import numpy as np
 from workers.balancing import tracking_reward
 from workers.body.character import Character
 from workers.body.features import amp_dim, amp_features, state_features
+from workers.models import device_features
+from workers.models.device_features import DeviceState
 from workers.rewards import DEFAULT_WEIGHTS, imitation_reward
 from workers.sim.env import Simulator, StepResult
+from workers.types import KinState
 
 
 class Recorder:
@@ -46,16 +49,27 @@ class AMPFeatures(Recorder):
         d = amp_dim(self.character)
         self.before = np.empty((steps, num_envs, d), np.float32)
         self.after = np.empty_like(self.before)
-        self.current = amp_features(self.character, sim.kin_state())
+        self.current = self._of(sim.device_state()) if sim.computes_on_device else self._of_kin(sim.kin_state())
+
+    def _of(self, state: DeviceState) -> np.ndarray:
+        """Φ(s) computed where the state is (`workers.models.device_features`), copied to the host."""
+        return device_features.amp_features(self.character, state).cpu().numpy()
+
+    def _of_kin(self, kin: KinState) -> np.ndarray:
+        return amp_features(self.character, kin)
 
     def record(self, t: int, sim: Simulator, result: StepResult) -> None:
         self.before[t] = self.current
-        self.after[t] = amp_features(self.character, result.kin)
+        on_device = result.on_device
+        self.after[t] = self._of(on_device) if on_device is not None else self._of_kin(result.kin)
         self.current = self.after[t]
 
     def after_reset(self, sim: Simulator, ids: np.ndarray) -> None:
         self.current = self.current.copy()
-        self.current[ids] = amp_features(self.character, sim.kin_state()[ids])
+        if sim.computes_on_device:
+            self.current[ids] = self._of(sim.device_state().rows(ids))
+        else:
+            self.current[ids] = self._of_kin(sim.kin_state()[ids])
 
     def finish(self) -> dict[str, np.ndarray]:
         return {"amp_obs": self.before, "amp_next_obs": self.after}

@@ -79,6 +79,9 @@ def main(argv: list[str] | None = None) -> int:
     host.add_argument("--steps", type=int, default=32, help="timed control steps per measurement")
     host.add_argument("--collect", type=int, default=8, help="control steps per collect call")
     host.add_argument("--device", default="cpu", help="where the policy's inference runs (cpu, cuda or cuda:N)")
+    host.add_argument(
+        "--sim", default="mujoco", help="comma-separated frozen engines: mujoco (host), warp (on --device; the extra)"
+    )
     host.add_argument("--threads", type=int, default=1, help="torch.set_num_threads (a worker's default: 1)")
     host.add_argument("--seed", type=int, default=0)
     peer = sub.add_parser("peer", help="our tracker pipeline against RLlib's PPO, interleaved (needs .[peer])")
@@ -320,7 +323,15 @@ def _bench_host(parser: argparse.ArgumentParser, args: argparse.Namespace) -> tu
             parser.exit(2, f"error: --device {args.device}: this machine has no CUDA GPU\n")
     elif args.device != "cpu":
         parser.error(f"--device: expected cpu, cuda or cuda:N, got {args.device}")
-    result = bench_host.run(policies, envs, args.steps, args.collect, args.device, args.threads, args.seed)
+    sims = tuple(s for s in args.sim.split(",") if s)
+    if not sims or not set(sims) <= set(bench_host.SIMS):
+        parser.error(f"--sim: expected some of {','.join(bench_host.SIMS)}, got {args.sim}")
+    if "warp" in sims:
+        from workers.sim.warp_physics import INSTALL_HINT, warp_available
+
+        if not warp_available():
+            parser.exit(2, f"error: --sim warp needs mujoco-warp and warp-lang: {INSTALL_HINT}\n")
+    result = bench_host.run(policies, envs, args.steps, args.collect, args.device, args.threads, args.seed, sims)
     return bench_host.format_table(result), result
 
 

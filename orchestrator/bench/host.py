@@ -11,6 +11,11 @@ into the policy's networks and the rest. The rest is the host's ceiling: a worke
 collect faster than `envs / host seconds per step` control steps a second, however fast its
 GPU steps the physics.
 
+With `--sim warp` the frozen simulator is MuJoCo Warp's (`FrozenWarpSim`, on `--device` with
+the policy): the body states, the KinState and s are then made on the device and copied once a
+step, as a worker on MuJoCo Warp does; with `--sim mujoco` (the default) it is MuJoCo C's, all
+on the host.
+
 The networks' time is measured with hooks around the policy's top-level submodules (nested
 calls counted once), with the device synchronised at both ends on a GPU.
 """
@@ -26,10 +31,13 @@ import torch
 
 from orchestrator.bench.rollout import make_worker
 from orchestrator.bench.sim import walk_run_setup
+from workers.learners.vae import VAEConfig, state_weight_vector
+from workers.recorders import TrackingReward
 from workers.rollout import RolloutWorker
 from workers.sim.env import BatchedSim, SimConfig
 
 POLICIES = ("vae", "vae-paper", "actor-critic", "tracker")
+SIMS = ("mujoco", "warp")
 
 
 class FrozenSim(BatchedSim):
@@ -70,10 +78,33 @@ class NetworkClock:
             self.seconds += time.perf_counter() - self._start
 
 
-def frozen_worker(kind: str, character, library, envs: int, device: str, seed: int) -> RolloutWorker:
+def frozen_warp_sim(character, library, envs: int, device: str, seed: int):
+    """MuJoCo Warp's simulator on `device` with no physics (the controls are set, no step is taken)."""
+    from workers.sim.warp_sim import WarpSim
+
+    class FrozenWarpSim(WarpSim):
+        def _advance(self, actions: np.ndarray) -> None:
+            self.physics.set_ctrl(actions)
+
+        def _contact_falls(self) -> np.ndarray:
+            return np.zeros(self.num_envs, bool)
+
+    return FrozenWarpSim(character, library, envs, SimConfig(backend="warp", device=device), seed=seed)
+
+
+def frozen_worker(
+    kind: str, character, library, envs: int, device: str, seed: int, sim: str = "mujoco"
+) -> RolloutWorker:
     worker = make_worker(kind, character, library, 1, SimConfig(), seed)  # the policy and recorders of `kind`
-    sim = FrozenSim(character, library, envs, SimConfig(), seed=seed)
-    frozen = RolloutWorker(character, library, envs, worker.policy, seed=seed, recorders=worker.recorders, sim=sim)
+    recorders = worker.recorders
+    if kind.startswith("vae"):  # ControlVAE's worker records its tracking reward (orchestrator/algos/controlvae.py)
+        weights = state_weight_vector(character.num_bodies, VAEConfig().state_weights).numpy()
+        recorders = [TrackingReward(weights)]
+    if sim == "warp":
+        sim = frozen_warp_sim(character, library, envs, device, seed)
+    else:
+        sim = FrozenSim(character, library, envs, SimConfig(), seed=seed)
+    frozen = RolloutWorker(character, library, envs, worker.policy, seed=seed, recorders=recorders, sim=sim)
     frozen.policy.to(device)
     return frozen
 
@@ -103,15 +134,24 @@ def measure(worker: RolloutWorker, steps: int, collect: int) -> dict:
     }
 
 
-def run(policies: list[str], envs: list[int], steps: int, collect: int, device: str, threads: int, seed: int) -> dict:
+def run(
+    policies: list[str],
+    envs: list[int],
+    steps: int,
+    collect: int,
+    device: str,
+    threads: int,
+    seed: int,
+    sims: tuple[str, ...] = ("mujoco",),
+) -> dict:
     torch.set_num_threads(threads)
     character, library = walk_run_setup(480.0, 30.0)
     rows = []
     for kind in policies:
         for m in envs:
-            rows.append(
-                {"policy": kind, **measure(frozen_worker(kind, character, library, m, device, seed), steps, collect)}
-            )
+            for sim in sims:  # side by side, per size
+                worker = frozen_worker(kind, character, library, m, device, seed, sim)
+                rows.append({"policy": kind, "sim": sim, **measure(worker, steps, collect)})
     return {
         "benchmark": "host",
         "machine": {"host": platform.node(), "cpus": os.cpu_count(), "python": platform.python_version()},
@@ -126,12 +166,13 @@ def format_table(r: dict) -> str:
     lines = [
         f"host benchmark: one rollout worker with no physics, policy on {r['device']}, {r['threads']} torch "
         f"thread(s), collect({r['collect']})",
-        f"{'policy':<13}{'envs':>7}{'ms/step':>9}{'network ms':>12}{'host ms':>9}{'control/s':>11}"
+        f"{'policy':<13}{'sim':<8}{'envs':>7}{'ms/step':>9}{'network ms':>12}{'host ms':>9}{'control/s':>11}"
         f"{'host ceiling/s':>16}",
     ]
     for x in r["results"]:
         lines.append(
-            f"{x['policy']:<13}{x['envs']:>7}{x['ms_per_step']:>9.1f}{x['network_ms_per_step']:>12.1f}"
+            f"{x['policy']:<13}{x.get('sim', 'mujoco'):<8}{x['envs']:>7}{x['ms_per_step']:>9.1f}"
+            f"{x['network_ms_per_step']:>12.1f}"
             f"{x['host_ms_per_step']:>9.1f}{x['control_steps_per_s']:>11,.0f}{x['host_ceiling_control_steps_per_s']:>16,.0f}"
         )
     return "\n".join(lines)

@@ -114,3 +114,39 @@ def test_every_policy_acts_the_same_on_the_gpu_as_on_the_cpu(character, walk_run
         np.testing.assert_allclose(a_gpu, a_cpu, atol=1e-4, err_msg=name)
         for key, value in x_cpu.items():
             np.testing.assert_allclose(x_gpu[key], value, atol=1e-4, err_msg=f"{name}: {key}")
+
+
+@pytest.mark.parametrize("kind", ["state", "imitation", "mimic"])
+def test_an_observation_made_on_the_device_is_the_numpy_one(character, walk_run, kind):
+    """`observe_on` (torch, float32, where the policy runs) gives `observe`'s numbers (NumPy) to float rounding."""
+    from workers.policies import observe, observe_on
+
+    sim = make_sim(character, walk_run, M, seed=0)
+    sim.step(character.qpos_to_action(sim.kin_state().qpos))  # moving bodies, some frames on
+    bs = sim.body_states()
+    want = observe(kind, sim, bs)
+    got = observe_on(torch.device("cpu"), kind, sim, bs)
+    assert got.dtype == torch.float32 and got.shape == want.shape
+    np.testing.assert_allclose(got.numpy(), want, rtol=0, atol=1e-5)
+    assert observe_on(torch.device("meta"), kind, sim, bs).device.type == "meta"  # made where it is asked
+
+
+def test_a_gaussian_policy_beside_a_simulator_on_its_device_observes_there(character, walk_run, monkeypatch):
+    """Beside a simulator that computes on its device, the policy's observation is `observe_on`'s, recorded as
+    the extras' `obs`; beside MuJoCo C it is NumPy's, bit for bit as before."""
+    from workers.policies import observe, observe_on
+
+    sim = make_sim(character, walk_run, M, seed=0)
+    bs = sim.body_states()
+    module = build_actor_critic(2 * StateLayout(character.num_bodies).dim, character.num_actions, PPO)
+    policy = GaussianPolicy(module, "imitation", residual=True)
+    policy.bind(M, np.random.default_rng(1), torch.Generator().manual_seed(2))
+    _, extras = policy.act(sim, bs)
+    np.testing.assert_array_equal(extras["obs"], observe("imitation", sim, bs))
+    monkeypatch.setattr(type(sim), "computes_on_device", True)
+    calls = []
+    monkeypatch.setattr("workers.policies.observe_on", lambda *a: calls.append(a[0]) or observe_on(*a))
+    _, extras = policy.act(sim, bs)
+    np.testing.assert_array_equal(policy.observe(sim, bs), extras["obs"])
+    assert calls == [torch.device("cpu")] * 2
+    np.testing.assert_allclose(extras["obs"], observe("imitation", sim, bs), rtol=0, atol=1e-5)

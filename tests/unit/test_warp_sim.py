@@ -23,7 +23,8 @@ import torch
 
 pytest.importorskip("mujoco_warp")
 
-from workers.body.features import state_features  # noqa: E402
+from workers.body.features import amp_features, state_features  # noqa: E402
+from workers.models import device_features  # noqa: E402
 from workers.motion.library import MotionLibrary  # noqa: E402
 from workers.sim.env import BatchedSim, SimConfig, make_sim  # noqa: E402
 from workers.sim.terrain import TerrainConfig  # noqa: E402
@@ -122,6 +123,15 @@ def test_what_a_step_reports_is_made_on_the_device(warp):
     np.testing.assert_array_equal(r.kin.xquat, a.xquat[:, 1:])
     np.testing.assert_allclose(r.state, state_features(r.kin), rtol=0, atol=1e-5)
     assert r.state.dtype == np.float32
+    # The state on the device, which the recorders read there: the step's, not the worlds' live arrays.
+    on = r.on_device
+    np.testing.assert_array_equal(on.qpos.cpu().numpy(), r.kin.qpos)
+    np.testing.assert_array_equal(on.body_states.cpu().numpy(), r.body_states)
+    phi = device_features.amp_features(warp.character, on).cpu().numpy()
+    np.testing.assert_allclose(phi, amp_features(warp.character, r.kin), rtol=0, atol=2e-5)
+    warp.step(tracking_actions(warp, np.random.default_rng(3)))
+    np.testing.assert_array_equal(on.qpos.cpu().numpy(), r.kin.qpos)
+    np.testing.assert_array_equal(warp.device_state().body_states.cpu().numpy(), warp.body_states())
 
 
 @pytest.mark.slow
@@ -246,6 +256,34 @@ def test_a_rollout_worker_on_warp_resumes_exactly(character, library):
     for name in ("states", "next_states", "actions"):  # bit for bit on the CPU
         tol = 0.0 if DEVICE == "cpu" else 1e-3
         np.testing.assert_allclose(getattr(got, name), getattr(expected, name), atol=tol, rtol=0, err_msg=name)
+
+
+@pytest.mark.slow
+def test_an_amp_worker_on_warp_observes_and_records_on_the_device(character, library):
+    """AMP's worker on MuJoCo Warp: the policy's observation s and the recorder's Φ(s) are made on the device
+    (float32 torch); they are NumPy's of the same states to float rounding, and a reset environment's next
+    Φ(s_t) is its reference start's."""
+    from workers.body.features import StateLayout
+    from workers.learners.ppo import PPOConfig, build_actor_critic
+    from workers.models.body_state import features_np
+    from workers.policies import GaussianPolicy
+    from workers.recorders import AMPFeatures
+    from workers.rollout import RolloutWorker
+
+    torch.manual_seed(0)
+    module = build_actor_critic(StateLayout(character.num_bodies).dim, character.num_actions, PPOConfig())
+    config = SimConfig(backend="warp", device=DEVICE, max_episode_steps=3)
+    policy = GaussianPolicy(module, "state")
+    worker = RolloutWorker(character, library, 3, policy, config, seed=1, recorders=[AMPFeatures(character)])
+    traj = worker.collect(5)
+    for t in range(5):
+        np.testing.assert_allclose(traj.extras["obs"][t], features_np(traj.states[t]), rtol=0, atol=1e-5)
+    before, after = traj.extras["amp_obs"], traj.extras["amp_next_obs"]
+    assert traj.done[2].all() and not traj.done[:2].any()  # every episode ends after three steps
+    np.testing.assert_array_equal(before[1:3], after[0:2])
+    start = library.state(traj.clip_id[3], traj.frame[3])
+    np.testing.assert_allclose(before[3], amp_features(character, start), rtol=0, atol=1e-4)
+    assert np.abs(before[3] - after[2]).max() > 1e-2  # the reset's Φ, not the fall's
 
 
 @pytest.mark.slow

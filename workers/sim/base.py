@@ -40,6 +40,7 @@ import numpy as np
 from workers.body.character import Character
 from workers.body.features import state_features
 from workers.models.body_state import pack
+from workers.models.device_features import DeviceState
 from workers.motion.library import MotionLibrary
 from workers.sim.terrain import TerrainConfig, ground_geoms, reset_lift, terrain_model
 from workers.types import KinState
@@ -128,6 +129,7 @@ class StepResult:
     # What a backend computed where its state lives (MuJoCo Warp: on the device); None: derived from `kin` here.
     packed: np.ndarray | None = field(default=None, repr=False)  # [N, B, 13] float32 body states
     features: Callable[[], np.ndarray] | None = field(default=None, repr=False)  # s [N, D], called when read
+    on_device: DeviceState | None = field(default=None, repr=False)  # the new state where the worlds are
     done: np.ndarray = field(init=False)
 
     def __post_init__(self) -> None:
@@ -172,6 +174,9 @@ class Simulator(abc.ABC):
     """
 
     backend = ""  # the SimConfig.backend a subclass implements
+    # Whether the state lives on `config.device` and what reads it is best computed there (MuJoCo Warp): the
+    # policies then make their observations on their device (`workers.policies.observe_on`), in torch.
+    computes_on_device = False
 
     def __init__(
         self,
@@ -281,7 +286,8 @@ class Simulator(abc.ABC):
             raise ValueError(f"actions must be [{self.num_envs}, {self.action_dim}], got {list(actions.shape)}")
         self._advance(actions)
         self.steps += 1
-        kin, packed, features = self._observe()
+        observed = self._observe()
+        kin = observed["kin"]
         frames = self.start_frame + self.steps
         if self.config.tracking_error_m > 0:
             head = self.character.head_body
@@ -297,14 +303,12 @@ class Simulator(abc.ABC):
         self._fell = self._contact_falls() if self._fall_on_contact else np.zeros(self.num_envs, bool)
         return StepResult(
             ref_state=self.library.features(self.clip_id, frames),
-            kin=kin,
             fell=self._fell.copy(),
             tracking_failed=tracking_failed,
             clip_ended=clip_ended,
             timeout=timeout,
             end_on_fall=self.config.end_on_fall,
-            packed=packed,
-            features=features,
+            **observed,
         )
 
     def switch_reference(self, env_ids: np.ndarray, clip_ids: np.ndarray, frames: np.ndarray) -> None:
@@ -336,10 +340,15 @@ class Simulator(abc.ABC):
         kin = self.kin_state()
         return pack(kin if env_ids is None else kin[env_ids])
 
-    def _observe(self) -> tuple[KinState, np.ndarray | None, Callable[[], np.ndarray] | None]:
-        """What a control step reports of the new state: its `KinState`, and optionally the body states and
-        a maker of s that the backend computed itself (`StepResult.packed`, `.features`); here none."""
-        return self.kin_state(), None, None
+    def device_state(self) -> DeviceState | None:
+        """The current state on `config.device` as torch tensors, where the backend keeps it there
+        (`computes_on_device`); None here."""
+        return None
+
+    def _observe(self) -> dict[str, Any]:
+        """What a control step reports of the new state, as `StepResult` fields: its `kin`, and what the backend
+        computed itself (`packed`, `features`, `on_device`); here the `KinState` only."""
+        return {"kin": self.kin_state()}
 
     def reference_state(self) -> KinState:
         """The reference state at each environment's current time."""

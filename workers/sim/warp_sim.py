@@ -40,13 +40,14 @@ What MuJoCo C does that MuJoCo Warp does not, and what this class does instead:
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from typing import Any
 
 import mujoco
 import numpy as np
 import torch
 
 from workers.models import body_state
+from workers.models.device_features import DeviceState
 from workers.sim.base import PhysicsArrays, Simulator
 from workers.sim.warp_physics import WarpPhysics
 from workers.types import KinState
@@ -63,6 +64,7 @@ class WarpSim(Simulator):
     """N environments in MuJoCo Warp on `config.device`; the interface is `Simulator`'s (see the module)."""
 
     backend = "warp"
+    computes_on_device = True
 
     def _check_config(self) -> None:
         super()._check_config()
@@ -121,10 +123,20 @@ class WarpSim(Simulator):
         lin = cvel[..., 3:] + torch.linalg.cross(w, xpos - p.subtree_com[:, 1:2], dim=-1)
         return torch.cat((xpos, p.xquat[:, 1:], lin, w), dim=-1)
 
-    def _observe(self) -> tuple[KinState, np.ndarray, Callable[[], np.ndarray]]:
+    def _observe(self) -> dict[str, Any]:
         bs = self._device_body_states()
         kin, packed = self._to_host(bs)
-        return kin, packed, lambda: body_state.features(bs).cpu().numpy()
+        p = self.physics
+        return {
+            "kin": kin,
+            "packed": packed,
+            "features": lambda: body_state.features(bs).cpu().numpy(),
+            "on_device": DeviceState(p.qpos.clone(), p.qvel.clone(), bs),
+        }
+
+    def device_state(self) -> DeviceState:
+        p = self.physics
+        return DeviceState(p.qpos.clone(), p.qvel.clone(), self._device_body_states())
 
     def _to_host(self, bs: torch.Tensor) -> tuple[KinState, np.ndarray]:
         """The `KinState` (float64) and body states (float32) of device body states: one copy with qpos, qvel."""
