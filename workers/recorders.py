@@ -15,6 +15,7 @@ at the end (`finish`), whose arrays [T, M, ...] go into the trajectory's extras.
 from __future__ import annotations
 
 import numpy as np
+import torch
 
 from workers.balancing import tracking_reward
 from workers.body.character import Character
@@ -87,7 +88,13 @@ class ImitationReward(Recorder):
         self.terms: dict[str, np.ndarray] = {}
 
     def record(self, t: int, sim: Simulator, result: StepResult) -> None:
-        r, terms = imitation_reward(self.character, result.kin, sim.reference_state(), self.weights)
+        if result.on_device is not None:  # where the state is; one copy of the reward and its terms
+            ref = sim.device_reference().state(sim.clip_id, sim.start_frame + sim.steps)
+            r, terms = device_features.imitation_reward(self.character, result.on_device, ref, self.weights)
+            r, *values = torch.stack([r, *terms.values()]).cpu().numpy()
+            terms = dict(zip(terms, values, strict=True))
+        else:
+            r, terms = imitation_reward(self.character, result.kin, sim.reference_state(), self.weights)
         self.reward[t] = r
         for k, v in terms.items():
             self.terms.setdefault(k, np.empty_like(self.reward))[t] = v
@@ -106,20 +113,36 @@ class TrackingReward(Recorder):
         self.weights = np.asarray(weights, np.float64)
         self.temperature = temperature
 
-    def _of(self, sim: Simulator, state: np.ndarray, ids: np.ndarray | slice = slice(None)) -> np.ndarray:
-        ref = sim.library.features(sim.clip_id[ids], (sim.start_frame + sim.steps)[ids])
-        return tracking_reward(state, ref, self.weights, self.temperature)
+    def _of(self, sim: Simulator, ids: np.ndarray | slice = slice(None)) -> np.ndarray:
+        """The reward of environments `ids` in their current state against their current reference frames."""
+        clips, frames = sim.clip_id[ids], (sim.start_frame + sim.steps)[ids]
+        if sim.computes_on_device:
+            state = sim.device_state()
+            state = state if isinstance(ids, slice) else state.rows(ids)
+            return self._on_device(sim, device_features.state_features(state), clips, frames)
+        state = state_features(sim.kin_state()[ids])
+        return tracking_reward(state, sim.library.features(clips, frames), self.weights, self.temperature)
+
+    def _on_device(self, sim: Simulator, state: torch.Tensor, clips: np.ndarray, frames: np.ndarray) -> np.ndarray:
+        """Eq. 20 computed where the state is, from s there and the reference's s looked up there."""
+        ref = sim.device_reference().frame_features(clips, frames)
+        weights = torch.as_tensor(self.weights, dtype=torch.float32, device=state.device)
+        return device_features.tracking_reward(state, ref, weights, self.temperature).cpu().numpy()
 
     def begin(self, steps: int, num_envs: int, sim: Simulator) -> None:
         self.reward = np.empty((steps, num_envs), np.float32)
-        self.current = self._of(sim, state_features(sim.kin_state()))
+        self.current = self._of(sim)
 
     def record(self, t: int, sim: Simulator, result: StepResult) -> None:
         self.reward[t] = self.current
-        self.current = tracking_reward(result.state, result.ref_state, self.weights, self.temperature)
+        if result.on_device is not None:
+            s = device_features.state_features(result.on_device)
+            self.current = self._on_device(sim, s, sim.clip_id, sim.start_frame + sim.steps)
+        else:
+            self.current = tracking_reward(result.state, result.ref_state, self.weights, self.temperature)
 
     def after_reset(self, sim: Simulator, ids: np.ndarray) -> None:
-        self.current[ids] = self._of(sim, state_features(sim.kin_state())[ids], ids)
+        self.current[ids] = self._of(sim, ids)
 
     after_switch = after_reset  # the same state against its new reference
 

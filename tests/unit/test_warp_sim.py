@@ -24,6 +24,8 @@ import torch
 pytest.importorskip("mujoco_warp")
 
 from workers.body.features import amp_features, state_features  # noqa: E402
+from workers.learners.base import Weights  # noqa: E402
+from workers.learners.vae import build_controller  # noqa: E402
 from workers.models import device_features  # noqa: E402
 from workers.motion.library import MotionLibrary  # noqa: E402
 from workers.sim.env import BatchedSim, SimConfig, make_sim  # noqa: E402
@@ -284,6 +286,48 @@ def test_an_amp_worker_on_warp_observes_and_records_on_the_device(character, lib
     start = library.state(traj.clip_id[3], traj.frame[3])
     np.testing.assert_allclose(before[3], amp_features(character, start), rtol=0, atol=1e-4)
     assert np.abs(before[3] - after[2]).max() > 1e-2  # the reset's Φ, not the fall's
+
+
+@pytest.mark.slow
+def test_the_rewards_recorded_on_the_device_are_numpys(warp, character, library):
+    """The tracker's imitation reward from the step's state on the device against the reference looked up there,
+    and ControlVAE's tracking reward in a worker (its first state, every step's, and resets'), agree with
+    the NumPy recorders' to float32 rounding."""
+    import dataclasses
+
+    from workers.balancing import tracking_reward
+    from workers.learners.vae import VAEConfig, state_weight_vector
+    from workers.models.body_state import features_np
+    from workers.policies import VAEPolicy
+    from workers.recorders import ImitationReward, TrackingReward
+    from workers.rollout import RolloutWorker
+
+    reset_both([warp], [WALK, WALK, KICK, KICK], [5, 20, 3, 10])
+    r = warp.step(tracking_actions(warp, np.random.default_rng(4), noise=0.3))
+    recorded = []
+    for result in (r, dataclasses.replace(r, on_device=None)):  # on the device, then NumPy's from the KinState
+        rec = ImitationReward(character, {"pose": 0.2, "velocity": 0.01, "end_effector": 4.0, "root": 1.0})
+        rec.begin(1, N, warp)
+        rec.record(0, warp, result)
+        recorded.append(rec.finish())
+    (on, host) = recorded
+    assert np.ptp(host["reward"]) > 1e-3
+    for key, value in host.items():
+        np.testing.assert_allclose(on[key], value, rtol=0, atol=1e-4, err_msg=key)
+
+    weights = state_weight_vector(character.num_bodies, VAEConfig().state_weights).numpy()
+    vae = VAEConfig(latent_dim=8, encoder_hidden=(32,), policy="mlp", policy_hidden=(64,))
+    policy = VAEPolicy(character.num_bodies, character.num_actions, vae, 0.5)
+    config = SimConfig(backend="warp", device=DEVICE, max_episode_steps=3)
+    worker = RolloutWorker(character, library, 3, policy, config, seed=2, recorders=[TrackingReward(weights)])
+    torch.manual_seed(0)
+    worker.set_weights(Weights(1, build_controller(character.num_bodies, character.num_actions, vae).state_dict()))
+    traj = worker.collect(5)
+    assert traj.done[2].all()
+    s = features_np(traj.states.reshape(15, *traj.states.shape[2:])).reshape(5, 3, -1)
+    want = tracking_reward(s, library.features(traj.clip_id, traj.frame), weights)
+    assert want.min() < 0.9 and want[0].min() > 0.99  # from the references' own states, then away from them
+    np.testing.assert_allclose(traj.extras["reward"], want, rtol=0, atol=1e-5)
 
 
 @pytest.mark.slow

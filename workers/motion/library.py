@@ -109,7 +109,7 @@ class MotionLibrary:
         rows, cycles = self.rows(clip_ids, np.asarray(frames, dtype=int))
         s = KinState(*(getattr(self, "_" + f)[rows] for f in _FRAME_FIELDS))
         if np.any(cycles):
-            yaw, shift = self._cycle_power(clip_ids, cycles)
+            yaw, shift = self.cycle_power(clip_ids, cycles)
             s = transform_state(s, yaw, shift)
         return s
 
@@ -119,7 +119,7 @@ class MotionLibrary:
         rows, cycles = self.rows(clip_ids, np.asarray(frames, dtype=int))
         pos = self._xpos[rows, body]
         if np.any(cycles):
-            yaw, shift = self._cycle_power(clip_ids, cycles)
+            yaw, shift = self.cycle_power(clip_ids, cycles)
             c, s = np.cos(yaw), np.sin(yaw)
             pos = np.stack((c * pos[:, 0] - s * pos[:, 1], s * pos[:, 0] + c * pos[:, 1], pos[:, 2]), -1) + shift
         return pos
@@ -133,6 +133,11 @@ class MotionLibrary:
         `character.qpos_to_action(state(...).qpos)`, looked up instead of computed."""
         return self._pd_targets[self.rows(np.asarray(clip_ids, dtype=int), np.asarray(frames, dtype=int))[0]]
 
+    def stored_frames(self) -> tuple[KinState, np.ndarray]:
+        """(Every stored frame's state, its s [total_frames, D]), in the flat row order of `rows`: the tables a
+        lookup elsewhere (`workers.models.device_features.DeviceReference`) indexes by `rows` and `cycle_power`."""
+        return KinState(*(getattr(self, "_" + f) for f in _FRAME_FIELDS)), self._features
+
     def rows(self, clip_ids: np.ndarray, frames: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Rows of the flat arrays and the number of whole cycles past the clip's end."""
         n = self.num_frames[clip_ids]
@@ -141,7 +146,7 @@ class MotionLibrary:
         local = np.where(loop, frames % n, np.minimum(frames, n - 1))
         return self.offsets[clip_ids] + local, cycles
 
-    def _cycle_power(self, clip_ids: np.ndarray, cycles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def cycle_power(self, clip_ids: np.ndarray, cycles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The cycle transform applied `cycles` times: yaw c·θ, shift Σ_{i<c} R(iθ) d (closed form)."""
         theta = self.cycle_yaw[clip_ids]
         d = self.cycle_shift[clip_ids][:, :2] @ np.array([1.0, 1j])  # complex xy

@@ -40,7 +40,7 @@ import numpy as np
 from workers.body.character import Character
 from workers.body.features import state_features
 from workers.models.body_state import pack
-from workers.models.device_features import DeviceState
+from workers.models.device_features import DeviceReference, DeviceState
 from workers.motion.library import MotionLibrary
 from workers.sim.terrain import TerrainConfig, ground_geoms, reset_lift, terrain_model
 from workers.types import KinState
@@ -339,6 +339,11 @@ class Simulator(abc.ABC):
         (rows `env_ids` only, when given): what a trajectory stores and a policy reads."""
         kin = self.kin_state()
         return pack(kin if env_ids is None else kin[env_ids])
+
+    def device_reference(self) -> DeviceReference | None:
+        """The motion library's frames on `config.device` (`DeviceReference`), where the backend computes there;
+        None here."""
+        return None
 
     def device_state(self) -> DeviceState | None:
         """The current state on `config.device` as torch tensors, where the backend keeps it there

@@ -47,7 +47,7 @@ import numpy as np
 import torch
 
 from workers.models import body_state
-from workers.models.device_features import DeviceState
+from workers.models.device_features import DeviceReference, DeviceState
 from workers.sim.base import PhysicsArrays, Simulator
 from workers.sim.warp_physics import WarpPhysics
 from workers.types import KinState
@@ -78,6 +78,7 @@ class WarpSim(Simulator):
 
     def _build_physics(self) -> None:
         self.physics = WarpPhysics(self.model, self.num_envs, device=self.config.device)
+        self._reference: DeviceReference | None = None  # the library on the device, made when first asked for
         self._warnings = np.zeros((self.num_envs, int(mujoco.mjtWarning.mjNWARNING)), int)
 
     def _set_physics_state(self, env_ids: np.ndarray, qpos: np.ndarray, qvel: np.ndarray, ctrl: np.ndarray) -> None:
@@ -133,6 +134,11 @@ class WarpSim(Simulator):
             "features": lambda: body_state.features(bs).cpu().numpy(),
             "on_device": DeviceState(p.qpos.clone(), p.qvel.clone(), bs),
         }
+
+    def device_reference(self) -> DeviceReference:
+        if self._reference is None:
+            self._reference = DeviceReference(self.library, self.physics.torch_device)
+        return self._reference
 
     def device_state(self) -> DeviceState:
         p = self.physics
