@@ -13,9 +13,11 @@
 #   sh scripts/device-warp.sh run            (the last part and .device/warp/wheels: join, install, check)
 # QUICK=1 (or WORLDS=a,b,...) benchmarks fewer world counts. The checks write their output under $OUT when it is
 # set: the Warp tests on cuda (and the policies' on cuda against the CPU), the equivalence run, `bench sim --backend
-# warp --device cuda` against MuJoCo C on all the machine's cores, and `bench host --device cuda` (a worker's host work
-# per control step beside its policy on the GPU), and `bench pipeline --runtimes local --sim mujoco,warp` for the
-# tracker and AMP (MuJoCo C on one thread there: the local runtime steps one worker in the benchmark's process).
+# warp --device cuda` against MuJoCo C on all the machine's cores, and `bench host --device cuda --sim mujoco,warp` (a
+# worker's host work per control step beside its policy on the GPU, its state's features and rewards computed on
+# the host from MuJoCo C's arrays or on the GPU from MuJoCo Warp's), and `bench pipeline --runtimes local --sim
+# mujoco,warp` for the tracker and AMP (MuJoCo C on one thread there: the local runtime steps one worker in the
+# benchmark's process).
 set -e
 cd "$(dirname "$0")/.."
 DIR=.device/warp
@@ -114,9 +116,10 @@ run_checks() {
     "$PY" -m orchestrator.bench sim --backend warp --device "$DEVICE" --worlds "${WORLDS:-$worlds}" \
         --out "$out/bench-sim.json" >"$out/bench-sim.txt" 2>&1 || status=1
     tail -n 12 "$out/bench-sim.txt"
-    "$PY" -m orchestrator.bench host --device "$DEVICE" --policies vae,vae-paper,tracker --envs "${HOST_ENVS:-1024,4096,16384}" \
+    "$PY" -m orchestrator.bench host --device "$DEVICE" --policies vae,vae-paper,tracker,actor-critic \
+        --envs "${HOST_ENVS:-1024,4096,16384}" --sim mujoco,warp \
         --out "$out/bench-host.json" >"$out/bench-host.txt" 2>&1 || status=1
-    tail -n 12 "$out/bench-host.txt"
+    tail -n 26 "$out/bench-host.txt"
     # End to end, local runtime (no Ray there), nothing tracked: the tracker and AMP on each engine.
     "$PY" -m orchestrator.bench pipeline --algos tracker,amp --runtimes local --workers 1 \
         --envs "${PIPELINE_ENVS:-1024}" --iterations 2 --warmup 1 --sim mujoco,warp --sim-device "$DEVICE" \

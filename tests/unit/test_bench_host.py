@@ -59,3 +59,29 @@ def test_a_gpu_that_is_not_there_is_one_line(capsys):
         main(["host", "--device", "cuda"])
     assert e.value.code == 2
     assert capsys.readouterr().err.strip() == "error: --device cuda: this machine has no CUDA GPU"
+
+
+@pytest.mark.slow
+def test_a_frozen_warp_worker_makes_its_state_on_the_device(setup, capsys):
+    """`--sim warp`: the worker's simulator is MuJoCo Warp's, frozen (the controls are set, no physics step), and its
+    step's state, features and rewards come from the device; the table has a row per engine."""
+    pytest.importorskip("mujoco_warp")
+    character, library = setup
+    worker = host.frozen_worker("tracker", character, library, 3, "cpu", seed=0, sim="warp")
+    assert worker.sim.computes_on_device
+    before = worker.sim.body_states()
+    traj = worker.collect(2)
+    np.testing.assert_array_equal(traj.next_states[-1], before)  # nothing moved
+    assert (traj.extras["reward"] > 0).all()
+    assert (
+        main(["host", "--policies", "tracker", "--envs", "2", "--steps", "2", "--collect", "1", "--sim", "mujoco,warp"])
+        == 0
+    )
+    rows = [line.split() for line in capsys.readouterr().out.splitlines() if line.startswith("tracker")]
+    assert [r[1] for r in rows] == ["mujoco", "warp"]
+
+
+def test_an_unknown_engine_is_one_line(capsys):
+    with pytest.raises(SystemExit) as e:
+        main(["host", "--sim", "bullet"])
+    assert e.value.code == 2 and "--sim: expected some of mujoco,warp, got bullet" in capsys.readouterr().err
