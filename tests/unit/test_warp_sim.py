@@ -114,6 +114,7 @@ def test_what_a_step_reports_is_made_on_the_device(warp):
     np.testing.assert_array_equal(warp.body_states(np.array([2, 0])), warp.body_states()[[2, 0]])
     r = warp.step(tracking_actions(warp, np.random.default_rng(2)))
     assert r.packed is not None and r.features is not None  # the backend's, not derived on the host
+    assert "kin" not in vars(r)  # the KinState's host copies are made when read, not every step
     assert r.body_states.dtype == np.float32 and r.body_states.shape == (N, warp.character.num_bodies, 13)
     np.testing.assert_array_equal(r.body_states, pack(r.kin))
     a = warp._arrays()  # float64 copies of the device arrays

@@ -120,7 +120,9 @@ class StepResult:
     """What one control step returns; arrays have N rows. `state` is computed when first read."""
 
     ref_state: np.ndarray  # [N, D] s of the reference at the same time
-    kin: KinState  # raw simulated state (the reference's: Simulator.reference_state())
+    # The raw simulated state (`kin`), or what makes it when first read (MuJoCo Warp: host copies of the device's).
+    # The reference's is Simulator.reference_state().
+    kin_source: KinState | Callable[[], KinState]
     fell: np.ndarray  # [N] bool
     tracking_failed: np.ndarray  # [N] bool
     clip_ended: np.ndarray  # [N] bool
@@ -136,6 +138,11 @@ class StepResult:
         self.done = self.tracking_failed | self.clip_ended | self.timeout
         if self.end_on_fall:
             self.done = self.done | self.fell
+
+    @cached_property
+    def kin(self) -> KinState:
+        """The simulated state as a `KinState` (float64 arrays; made when first read, then the same)."""
+        return self.kin_source if isinstance(self.kin_source, KinState) else self.kin_source()
 
     @cached_property
     def state(self) -> np.ndarray:
@@ -287,12 +294,12 @@ class Simulator(abc.ABC):
         self._advance(actions)
         self.steps += 1
         observed = self._observe()
-        kin = observed["kin"]
         frames = self.start_frame + self.steps
         if self.config.tracking_error_m > 0:
             head = self.character.head_body
             ref_head = self.library.body_positions(self.clip_id, frames, head)
-            bad = np.linalg.norm(kin.xpos[:, head] - ref_head, axis=-1) > self.config.tracking_error_m
+            head_pos = observed.pop("head_xpos")
+            bad = np.linalg.norm(head_pos - ref_head, axis=-1) > self.config.tracking_error_m
             self._bad_head_steps = np.where(bad, self._bad_head_steps + 1, 0)
             tracking_failed = self._bad_head_steps >= self._head_limit_steps
         else:
@@ -308,7 +315,7 @@ class Simulator(abc.ABC):
             clip_ended=clip_ended,
             timeout=timeout,
             end_on_fall=self.config.end_on_fall,
-            **observed,
+            **{k: v for k, v in observed.items() if k != "head_xpos"},
         )
 
     def switch_reference(self, env_ids: np.ndarray, clip_ids: np.ndarray, frames: np.ndarray) -> None:
@@ -351,9 +358,11 @@ class Simulator(abc.ABC):
         return None
 
     def _observe(self) -> dict[str, Any]:
-        """What a control step reports of the new state, as `StepResult` fields: its `kin`, and what the backend
-        computed itself (`packed`, `features`, `on_device`); here the `KinState` only."""
-        return {"kin": self.kin_state()}
+        """What a control step reports of the new state, as `StepResult` fields: its `kin_source`, and what the
+        backend computed itself (`packed`, `features`, `on_device`), and `head_xpos` [N, 3] (float64), the head's
+        position the tracking-failure test reads; here the `KinState` and its head."""
+        kin = self.kin_state()
+        return {"kin_source": kin, "head_xpos": kin.xpos[:, self.character.head_body]}
 
     def reference_state(self) -> KinState:
         """The reference state at each environment's current time."""

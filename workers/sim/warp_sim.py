@@ -11,10 +11,12 @@ A control step sets the controls of every world and advances them by K physics s
 as BatchedSim splits it (`WarpPhysics.step`). NumPy in and out: what leaves the device after a
 step is what the step reports, computed on the device first. The body states [N, B, 13] (each
 body's linear velocity moved from the subtree's centre of mass to its origin, and packed) are
-made there in float32 and copied to the host in one transfer with qpos and qvel
-(`StepResult.packed`; the `KinState` holds the same values widened to float64, as BatchedSim's
-arrays are float64); the state features s are computed there too, and copied only when
-`StepResult.state` is read. MuJoCo Warp computes in float32, so all of them hold float32 values
+made there in float32 and copied to the host, the one copy a step makes (`StepResult.packed`,
+which the trajectory stores; the head's rows give the tracking-failure test). The `KinState`
+(qpos and qvel copied, everything widened to float64, as BatchedSim's arrays are float64) and the
+state features s (computed on the device) are made only when `StepResult.kin` or `.state` is read;
+the recorders and policies beside this simulator read the state on the device instead
+(`StepResult.on_device`). MuJoCo Warp computes in float32, so all of them hold float32 values
 (tests/unit/test_warp_sim.py and docs/warp.md compare the two backends). A reset environment
 holds the float32 rounding of the reference state; the state features `reset` returns are the
 library's precomputed ones, as on MuJoCo C.
@@ -126,14 +128,38 @@ class WarpSim(Simulator):
 
     def _observe(self) -> dict[str, Any]:
         bs = self._device_body_states()
-        kin, packed = self._to_host(bs)
         p = self.physics
+        on_device = DeviceState(p.qpos.clone(), p.qvel.clone(), bs)
+        packed = bs.cpu().numpy()  # the one copy a step needs: the trajectory's body states
         return {
-            "kin": kin,
+            "kin_source": lambda: self._kin(on_device.qpos.cpu().numpy(), on_device.qvel.cpu().numpy(), packed),
             "packed": packed,
             "features": lambda: body_state.features(bs).cpu().numpy(),
-            "on_device": DeviceState(p.qpos.clone(), p.qvel.clone(), bs),
+            "on_device": on_device,
+            "head_xpos": packed[:, self.character.head_body, :3].astype(np.float64),
         }
+
+    def _to_host(self, bs: torch.Tensor) -> tuple[KinState, np.ndarray]:
+        """The `KinState` (float64) and body states (float32) of device body states: one copy with qpos, qvel."""
+        p, n = self.physics, self.num_envs
+        flat = torch.cat((p.qpos, p.qvel, bs.reshape(n, -1)), dim=1).cpu().numpy()
+        nq, nv = p.qpos.shape[1], p.qvel.shape[1]
+        packed = flat[:, nq + nv :].reshape(bs.shape)
+        return self._kin(flat[:, :nq], flat[:, nq : nq + nv], packed), packed
+
+    @staticmethod
+    def _kin(qpos: np.ndarray, qvel: np.ndarray, packed: np.ndarray) -> KinState:
+        """A `KinState` (float64 copies) of float32 qpos, qvel and body states."""
+        parts = (packed[..., part] for part in (body_state.POS, body_state.QUAT, body_state.LIN, body_state.ANG))
+        return KinState(qpos.astype(np.float64), qvel.astype(np.float64), *(a.astype(np.float64) for a in parts))
+
+    def kin_state(self) -> KinState:
+        """The simulated state of all environments (host copies, float64 holding float32 values), made on the device."""
+        return self._to_host(self._device_body_states())[0]
+
+    def body_states(self, env_ids: np.ndarray | None = None) -> np.ndarray:
+        packed = self._device_body_states().cpu().numpy()
+        return packed if env_ids is None else packed[env_ids]
 
     def device_reference(self) -> DeviceReference:
         if self._reference is None:
@@ -143,28 +169,6 @@ class WarpSim(Simulator):
     def device_state(self) -> DeviceState:
         p = self.physics
         return DeviceState(p.qpos.clone(), p.qvel.clone(), self._device_body_states())
-
-    def _to_host(self, bs: torch.Tensor) -> tuple[KinState, np.ndarray]:
-        """The `KinState` (float64) and body states (float32) of device body states: one copy with qpos, qvel."""
-        p, n = self.physics, self.num_envs
-        flat = torch.cat((p.qpos, p.qvel, bs.reshape(n, -1)), dim=1).cpu().numpy()
-        nq, nv = p.qpos.shape[1], p.qvel.shape[1]
-        packed = flat[:, nq + nv :].reshape(bs.shape)
-        parts = (packed[..., part] for part in (body_state.POS, body_state.QUAT, body_state.LIN, body_state.ANG))
-        kin = KinState(
-            flat[:, :nq].astype(np.float64),
-            flat[:, nq : nq + nv].astype(np.float64),
-            *(a.astype(np.float64) for a in parts),
-        )
-        return kin, packed
-
-    def kin_state(self) -> KinState:
-        """The simulated state of all environments (host copies, float64 holding float32 values), made on the device."""
-        return self._to_host(self._device_body_states())[0]
-
-    def body_states(self, env_ids: np.ndarray | None = None) -> np.ndarray:
-        packed = self._to_host(self._device_body_states())[1]
-        return packed if env_ids is None else packed[env_ids]
 
     def _contact_falls(self) -> np.ndarray:
         world, geom = self.physics.contacts()
