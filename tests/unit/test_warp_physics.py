@@ -158,3 +158,24 @@ def test_graph_replay_steps_as_direct_launches_do(sim, model, character, walk_ru
                 torch.testing.assert_close(a, b, rtol=0, atol=VEL_TOL if name in ("qvel", "cvel") else POS_TOL)
     assert SUBSTEPS in sim._graphs and "forward" in sim._graphs and not direct._graphs
     assert np.abs(sim.qpos.cpu().numpy() - qpos).max() > 100 * POS_TOL  # they moved
+
+
+@pytest.mark.slow
+def test_worlds_touching_reads_only_the_current_contacts(sim, model, walk_run):
+    """On the device, from the whole contact pool: the worlds with a contact involving a marked geom, as the
+    current state's contacts (`contacts()`) say; rows left in the pool from an earlier state do not count."""
+    floor = torch.zeros(model.ngeom, dtype=torch.bool, device=sim.torch_device)
+    floor[0] = True  # the ground: in every contact of a character lying on it
+    lying, high = model.qpos0.copy(), model.qpos0.copy()
+    lying[2], lying[3:7] = 0.1, [np.cos(np.pi / 4), 0.0, np.sin(np.pi / 4), 0.0]  # on its back, at the floor
+    high[2] = 5.0  # far above the floor: no contacts
+    sim.set_state(range(4), np.stack([lying, high, lying, high]), np.zeros((4, model.nv)))
+    world, geom = sim.contacts()
+    assert len(world) > 8 and set(world) == {0, 2}
+    np.testing.assert_array_equal(sim.worlds_touching(floor).cpu().numpy(), [True, False, True, False])
+    np.testing.assert_array_equal(sim.worlds_touching(torch.zeros_like(floor)).cpu().numpy(), [False] * 4)
+    sim.set_state(range(4), np.stack([lying] * 4), np.zeros((4, model.nv)))
+    np.testing.assert_array_equal(sim.worlds_touching(floor).cpu().numpy(), [True] * 4)
+    sim.set_state([0, 1, 2], np.stack([high] * 3), np.zeros((3, model.nv)))  # the pool keeps rows past the count
+    assert set(sim.contacts()[0]) == {3}
+    np.testing.assert_array_equal(sim.worlds_touching(floor).cpu().numpy(), [False, False, False, True])

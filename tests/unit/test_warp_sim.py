@@ -156,6 +156,9 @@ def test_falls_on_the_same_control_step(warp, mujoco_c):
         fell_at = np.full(N, -1)
         for t in range(30):
             fell = sim.step(hold).fell
+            if sim is warp:  # found on the device: the same as from the contact pool's rows on the host
+                world, geom = warp.physics.contacts()
+                np.testing.assert_array_equal(fell, np.isin(np.arange(N), world[warp._fall_geom[geom].any(axis=1)]))
             fell_at[fell & (fell_at < 0)] = t
             if (fell_at >= 0).all():
                 break

@@ -256,6 +256,18 @@ class WarpPhysics:
         world, geom = self._contact_world[:n][keep], self._contact_geom[:n][keep]
         return world.cpu().numpy().astype(np.int64), geom.cpu().numpy().astype(np.int64)
 
+    def worlds_touching(self, geoms: torch.Tensor) -> torch.Tensor:
+        """[nworld] bool on the device: whether a contact of the current state (as `contacts` lists them) involves
+        a geom that the mask `geoms` [ngeom] (bool, on the device) marks. Computed over the whole pool there, with
+        no copy and no wait for the contact count."""
+        rows = torch.arange(self._contact_world.shape[0], device=self.torch_device)
+        live = (rows < self._nacon[0].clamp(max=self.d.naconmax)) & ((self._contact_type & _CONSTRAINT_CONTACT) != 0)
+        geom = self._contact_geom.long()
+        hit = live & ((geom >= 0) & geoms[geom.clamp(min=0)]).any(dim=1)  # geom -1: a flex (none in our models)
+        touched = torch.zeros(self.nworld, dtype=torch.int32, device=self.torch_device)
+        touched.index_add_(0, self._contact_world.long().clamp(0, self.nworld - 1), hit.to(torch.int32))
+        return touched > 0
+
     @property
     def time(self) -> torch.Tensor:
         """[nworld] simulated time of each world since its state was last set (a live view)."""

@@ -22,9 +22,10 @@ holds the float32 rounding of the reference state; the state features `reset` re
 library's precomputed ones, as on MuJoCo C.
 
 Falls follow BatchedSim's rule: a contact of the new state that involves any geom but the floor
-and the allowed ones (`SimConfig.allowed_contacts`). They are read from MuJoCo Warp's contact
-pool (`WarpPhysics.contacts`: world and geom pair of every contact of every world), which is
-small (29 contacts per world at most for our humanoid), so no floor-distance pre-test is needed.
+and the allowed ones (`SimConfig.allowed_contacts`). They are found on the device over MuJoCo
+Warp's contact pool (`WarpPhysics.worlds_touching`: the rows of the current state, whose world and
+geom pair are read there), which is small (29 contacts per world at most for our humanoid), so no
+floor-distance pre-test is needed; N flags are copied to the host.
 
 What MuJoCo C does that MuJoCo Warp does not, and what this class does instead:
 - Unstable worlds. MuJoCo C resets an environment to the model's default pose, mid-step, when its
@@ -81,6 +82,7 @@ class WarpSim(Simulator):
     def _build_physics(self) -> None:
         self.physics = WarpPhysics(self.model, self.num_envs, device=self.config.device)
         self._reference: DeviceReference | None = None  # the library on the device, made when first asked for
+        self._fall_mask: torch.Tensor | None = None  # `_fall_geom` on the device
         self._warnings = np.zeros((self.num_envs, int(mujoco.mjtWarning.mjNWARNING)), int)
 
     def _set_physics_state(self, env_ids: np.ndarray, qpos: np.ndarray, qvel: np.ndarray, ctrl: np.ndarray) -> None:
@@ -171,11 +173,9 @@ class WarpSim(Simulator):
         return DeviceState(p.qpos.clone(), p.qvel.clone(), self._device_body_states())
 
     def _contact_falls(self) -> np.ndarray:
-        world, geom = self.physics.contacts()
-        fell = np.zeros(self.num_envs, bool)
-        hit = ((geom >= 0) & self._fall_geom[geom]).any(axis=1)  # geom -1: a flex (none in our models)
-        fell[world[hit]] = True
-        return fell
+        if self._fall_mask is None:
+            self._fall_mask = torch.as_tensor(self._fall_geom, device=self.physics.torch_device)
+        return self.physics.worlds_touching(self._fall_mask).cpu().numpy()  # found on the device, N flags copied
 
     @property
     def qacc_warmstart(self) -> np.ndarray:
