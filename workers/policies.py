@@ -94,6 +94,9 @@ class Policy:
     observes: bool = False
     # Where inference runs (`to`).
     device: torch.device = torch.device("cpu")
+    # `act` and `observe` take body states as a tensor on the simulator's device as well as NumPy: the worker
+    # then keeps them there beside a simulator that computes on its device (`Simulator.computes_on_device`).
+    reads_device_states: bool = False
 
     def to(self, device: torch.device | str) -> Policy:
         """Run inference on `device`: the networks move there now, and those made later (an expert's or a
@@ -141,6 +144,8 @@ class Policy:
 
 
 class VAEPolicy(Policy):
+    reads_device_states = True
+
     def __init__(self, num_bodies: int, action_dim: int, config: VAEConfig, prior_probability: float = 0.4):
         if not 0.0 <= prior_probability <= 1.0:
             raise ValueError(f"prior_probability must be in [0, 1], got {prior_probability}")
@@ -195,6 +200,7 @@ class GaussianPolicy(Policy):
     """The PPO actor-critic; its extras are the observation, the sampled action and log π(a | o) of each step."""
 
     observes = True
+    reads_device_states = True
 
     def __init__(self, module: ActorCritic, obs: str = "state", residual: bool = False):
         observation_dim(obs, 0)  # checks the name

@@ -109,8 +109,13 @@ class RolloutWorker:
         """Run every environment for `steps` control steps; the trajectory, tagged with the weights' version."""
         t0 = time.perf_counter()
         sim, m, policy = self.sim, self.num_envs, self.policy
-        states = np.empty((steps, m, sim.character.num_bodies, 13), np.float32)
-        next_states = np.empty_like(states)
+        # Beside a simulator that computes on its device, the body states stay there (the policy reads them
+        # there, or a host copy if it cannot) and the trajectory's leave it in one copy at the end.
+        on_device = sim.computes_on_device
+        bs = sim.device_body_states() if on_device else sim.body_states()
+        shape = (steps, m, sim.character.num_bodies, 13)
+        states = torch.empty(shape, device=bs.device) if on_device else np.empty(shape, np.float32)
+        next_states = torch.empty_like(states) if on_device else np.empty_like(states)
         actions = np.empty((steps, m, sim.action_dim), np.float32)
         done = np.empty((steps, m), bool)
         truncated = np.empty((steps, m), bool)
@@ -123,19 +128,18 @@ class RolloutWorker:
         final_obs: list[np.ndarray] = []
         for r in self.recorders:
             r.begin(steps, m, sim)
-        bs = sim.body_states()
         for t in range(steps):
             states[t] = bs
             clip_id[t] = sim.clip_id
             frame[t] = sim.start_frame + sim.steps
-            a, step_extras = policy.act(sim, bs)
+            a, step_extras = policy.act(sim, self._for_policy(bs))
             actions[t] = a
             for k, v in step_extras.items():
                 if k not in extras:
                     extras[k] = np.empty((steps,) + v.shape, v.dtype)
                 extras[k][t] = v
             result = sim.step(a)
-            next_states[t] = result.body_states
+            next_states[t] = result.on_device.body_states if on_device else result.body_states
             done[t] = result.done
             truncated[t] = result.timeout | result.clip_ended
             for r in self.recorders:
@@ -148,12 +152,17 @@ class RolloutWorker:
                 if policy.observes and truncated[t].any():
                     cut = np.flatnonzero(truncated[t])
                     final_rows.extend((t, int(i)) for i in cut)
-                    final_obs.append(policy.observe(sim, bs)[cut])
+                    final_obs.append(policy.observe(sim, self._for_policy(bs))[cut])
                 self._count_ends(result, ids)
                 sim.reset(ids)
                 policy.episodes_reset(ids)
-                bs = bs.copy()
-                bs[ids] = sim.body_states(ids)
+                if on_device:
+                    bs = bs.clone()
+                    rows = torch.as_tensor(ids, device=bs.device)
+                    bs[rows] = sim.device_body_states()[rows]
+                else:
+                    bs = bs.copy()
+                    bs[ids] = sim.body_states(ids)
                 for r in self.recorders:
                     if hasattr(r, "after_reset"):
                         r.after_reset(sim, ids)
@@ -167,15 +176,23 @@ class RolloutWorker:
             extras["switched"] = switched
             extras.update(zip(("switches", "switch_falls", "switch_recoveries"), switch_counts, strict=True))
         if policy.observes:
-            extras["last_obs"] = policy.observe(sim, bs)
+            extras["last_obs"] = policy.observe(sim, self._for_policy(bs))
             extras["final_rows"] = np.asarray(final_rows, np.int64).reshape(-1, 2)
             width = extras["last_obs"].shape[-1]
             extras["final_obs"] = np.concatenate(final_obs) if final_obs else np.zeros((0, width), np.float32)
         if "reward" in extras:
             self._count_returns(extras["reward"], done)
+        if on_device:
+            states, next_states = states.cpu().numpy(), next_states.cpu().numpy()
         self.steps_collected += steps * m
         self.collect_seconds += time.perf_counter() - t0
         return Trajectory(states, next_states, actions, done, clip_id, frame, self.version, self.worker_id, extras)
+
+    def _for_policy(self, bs: np.ndarray | torch.Tensor) -> np.ndarray | torch.Tensor:
+        """Body states as the policy takes them: a device tensor as it is if the policy reads those, else NumPy."""
+        if isinstance(bs, torch.Tensor) and not self.policy.reads_device_states:
+            return bs.cpu().numpy()
+        return bs
 
     def demonstrate(self, clip_ids: np.ndarray, max_steps: np.ndarray) -> list[dict[str, Any]]:
         """One episode per entry: clip `clip_ids[i]` tracked from its frame 0 for up to `max_steps[i]` control

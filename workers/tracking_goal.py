@@ -77,10 +77,11 @@ def goal(kind: str, bs: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
     return features(ref) if kind == "reference" else mimic_goal(bs, ref)
 
 
-def next_goal(kind: str, sim: BatchedSim, bs: np.ndarray) -> torch.Tensor:
+def next_goal(kind: str, sim: BatchedSim, bs: np.ndarray | torch.Tensor) -> torch.Tensor:
     """The goal [M, G] (float32) of a simulator's environments in body states bs [M, B, 13], toward each one's
-    reference one control step ahead."""
+    reference one control step ahead; on the CPU, or where bs is when it is a tensor."""
     check(kind)
     if kind == "reference":
         return torch.from_numpy(sim.reference_next_features().astype(np.float32))
-    return mimic_goal(torch.from_numpy(np.asarray(bs, np.float32)), torch.from_numpy(sim.reference_next_body_states()))
+    b = torch.as_tensor(bs, dtype=torch.float32)
+    return mimic_goal(b, torch.from_numpy(sim.reference_next_body_states()).to(b.device))

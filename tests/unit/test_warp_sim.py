@@ -335,6 +335,46 @@ def test_the_rewards_recorded_on_the_device_are_numpys(warp, character, library)
 
 
 @pytest.mark.slow
+def test_every_kind_of_policy_collects_with_the_body_states_on_the_device(character, library):
+    """Beside MuJoCo Warp the worker keeps the body states on the device (policies that read them there get them
+    there, the task policies a host copy) and copies the trajectory's once: its arrays are NumPy, each step's
+    next states are the following step's states but where an episode ended, and a mimic observation made
+    from the device's states is NumPy's of the stored ones."""
+    from workers.learners.ppo import PPOConfig, build_actor_critic
+    from workers.learners.task import TaskConfig
+    from workers.learners.vae import VAEConfig
+    from workers.models.body_state import features_np
+    from workers.policies import GaussianPolicy, VAEPolicy, observation_dim
+    from workers.rollout import RolloutWorker
+    from workers.task_policy import TaskRolloutPolicy
+    from workers.tracking_goal import next_goal
+
+    b, a = character.num_bodies, character.num_actions
+    skill = VAEConfig(latent_dim=8, encoder_hidden=(32,), policy="mlp", policy_hidden=(32,))
+    torch.manual_seed(0)
+    task = TaskRolloutPolicy(b, a, TaskConfig(task="point_goal", sigma=0.5, hidden=(16,), helper_hidden=(16,)), 30.0)
+    task.configure(
+        {"skill": {"config": skill, "module": build_controller(b, a, skill).state_dict(), "prior_action": True}}
+    )
+    mimic = GaussianPolicy(build_actor_critic(observation_dim("mimic", 16 * b + 3), a, PPOConfig()), "mimic")
+    config = SimConfig(backend="warp", device=DEVICE, max_episode_steps=3)
+    for name, policy in (("vae", VAEPolicy(b, a, skill)), ("mimic", mimic), ("task", task)):
+        worker = RolloutWorker(character, library, 3, policy, config, seed=5)
+        if name == "vae":
+            worker.set_weights(Weights(1, build_controller(b, a, skill).state_dict()))
+        traj = worker.collect(5)
+        assert isinstance(traj.states, np.ndarray) and traj.states.dtype == np.float32, name
+        assert traj.done[2].all() and not traj.done[[0, 1, 3]].any(), name
+        np.testing.assert_array_equal(traj.next_states[[0, 1, 3]], traj.states[[1, 2, 4]], err_msg=name)
+        assert np.abs(traj.next_states[2] - traj.states[3]).max() > 1e-3, name  # reset: a new start
+        if name == "mimic":
+            obs = traj.extras["last_obs"]  # of the states after the last step, made on the device
+            s = features_np(traj.next_states[-1])
+            goal = next_goal("mimic", worker.sim, traj.next_states[-1]).numpy()
+            np.testing.assert_allclose(obs, np.concatenate((s, goal), axis=-1), rtol=0, atol=1e-4)
+
+
+@pytest.mark.slow
 def test_an_unstable_world_is_reset_and_counted(warp):
     """MuJoCo C resets an environment with non-finite state to the default pose and warns; so does WarpSim."""
     reset_both([warp], [WALK] * N, [5, 10, 15, 20])

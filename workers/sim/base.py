@@ -129,7 +129,7 @@ class StepResult:
     timeout: np.ndarray  # [N] bool
     end_on_fall: bool = True  # whether `fell` ends the episode
     # What a backend computed where its state lives (MuJoCo Warp: on the device); None: derived from `kin` here.
-    packed: np.ndarray | None = field(default=None, repr=False)  # [N, B, 13] float32 body states
+    packed: np.ndarray | Callable[[], np.ndarray] | None = field(default=None, repr=False)  # [N, B, 13] float32
     features: Callable[[], np.ndarray] | None = field(default=None, repr=False)  # s [N, D], called when read
     on_device: DeviceState | None = field(default=None, repr=False)  # the new state where the worlds are
     done: np.ndarray = field(init=False)
@@ -155,7 +155,9 @@ class StepResult:
     @cached_property
     def body_states(self) -> np.ndarray:
         """[N, B, 13] float32 body states of the simulated characters (`pack(kin)`, or the backend's)."""
-        return self.packed if self.packed is not None else pack(self.kin)
+        if self.packed is None:
+            return pack(self.kin)
+        return self.packed() if callable(self.packed) else self.packed
 
 
 class PhysicsArrays(NamedTuple):
@@ -351,6 +353,10 @@ class Simulator(abc.ABC):
         """The motion library's frames on `config.device` (`DeviceReference`), where the backend computes there;
         None here."""
         return None
+
+    def device_body_states(self):
+        """[N, B, 13] float32 body states on `config.device` (a torch tensor), where the backend computes there."""
+        raise NotImplementedError(f"{type(self).__name__} keeps its state on the host: use body_states()")
 
     def device_state(self) -> DeviceState | None:
         """The current state on `config.device` as torch tensors, where the backend keeps it there

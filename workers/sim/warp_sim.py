@@ -43,6 +43,7 @@ What MuJoCo C does that MuJoCo Warp does not, and what this class does instead:
 
 from __future__ import annotations
 
+import functools
 from typing import Any
 
 import mujoco
@@ -132,14 +133,19 @@ class WarpSim(Simulator):
         bs = self._device_body_states()
         p = self.physics
         on_device = DeviceState(p.qpos.clone(), p.qvel.clone(), bs)
-        packed = bs.cpu().numpy()  # the one copy a step needs: the trajectory's body states
+        packed = functools.cache(lambda: bs.cpu().numpy())  # copied when read: a worker keeps them on the device
+        head = bs[:, self.character.head_body, :3].cpu().numpy().astype(np.float64)  # N x 3: the only copy a step
         return {
-            "kin_source": lambda: self._kin(on_device.qpos.cpu().numpy(), on_device.qvel.cpu().numpy(), packed),
+            "kin_source": lambda: self._kin(on_device.qpos.cpu().numpy(), on_device.qvel.cpu().numpy(), packed()),
             "packed": packed,
             "features": lambda: body_state.features(bs).cpu().numpy(),
             "on_device": on_device,
-            "head_xpos": packed[:, self.character.head_body, :3].astype(np.float64),
+            "head_xpos": head,
         }
+
+    def device_body_states(self) -> torch.Tensor:
+        """[N, B, 13] float32 body states of the current state, on the device (a new tensor, not a view)."""
+        return self._device_body_states()
 
     def _to_host(self, bs: torch.Tensor) -> tuple[KinState, np.ndarray]:
         """The `KinState` (float64) and body states (float32) of device body states: one copy with qpos, qvel."""
