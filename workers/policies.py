@@ -80,9 +80,7 @@ def observe_on(device: torch.device, kind: str, sim: Simulator, bs: np.ndarray) 
     s = body_state.features(b)
     if kind == "state":
         return s
-    if kind == "imitation":
-        return torch.cat((s, torch.as_tensor(sim.reference_next_features()).to(device)), dim=-1)
-    return torch.cat((s, next_goal("mimic", sim, bs).to(device)), dim=-1)
+    return torch.cat((s, next_goal("reference" if kind == "imitation" else "mimic", sim, b).to(device)), dim=-1)
 
 
 class Policy:

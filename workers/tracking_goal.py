@@ -79,8 +79,15 @@ def goal(kind: str, bs: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
 
 def next_goal(kind: str, sim: BatchedSim, bs: np.ndarray | torch.Tensor) -> torch.Tensor:
     """The goal [M, G] (float32) of a simulator's environments in body states bs [M, B, 13], toward each one's
-    reference one control step ahead; on the CPU, or where bs is when it is a tensor."""
+    reference one control step ahead; on the simulator's device beside one that computes there
+    (`Simulator.computes_on_device`), else on the CPU (or where bs is, when it is a tensor)."""
     check(kind)
+    if sim.computes_on_device:  # the reference looked up where the simulator's state is, the goal made there
+        ref, clips, frames = sim.device_reference(), sim.clip_id, sim.start_frame + sim.steps + 1
+        if kind == "reference":
+            return ref.frame_features(clips, frames)
+        b = torch.as_tensor(bs, dtype=torch.float32).to(ref.device)
+        return mimic_goal(b, ref.state(clips, frames).body_states)
     if kind == "reference":
         return torch.from_numpy(sim.reference_next_features().astype(np.float32))
     b = torch.as_tensor(bs, dtype=torch.float32)

@@ -19,6 +19,7 @@ from workers.learners.ppo import PPOConfig, build_actor_critic
 from workers.learners.task import TaskConfig
 from workers.learners.vae import VAEConfig, build_controller
 from workers.models import body_state
+from workers.models.device_features import DeviceReference
 from workers.models.nets import gaussian
 from workers.policies import ExpertPolicy, GaussianPolicy, VAEPolicy
 from workers.sim.env import make_sim
@@ -143,7 +144,9 @@ def test_a_gaussian_policy_beside_a_simulator_on_its_device_observes_there(chara
     policy.bind(M, np.random.default_rng(1), torch.Generator().manual_seed(2))
     _, extras = policy.act(sim, bs)
     np.testing.assert_array_equal(extras["obs"], observe("imitation", sim, bs))
-    monkeypatch.setattr(type(sim), "computes_on_device", True)
+    monkeypatch.setattr(type(sim), "computes_on_device", True)  # and its library's frames "on the device":
+    reference = DeviceReference(walk_run, "cpu")
+    monkeypatch.setattr(type(sim), "device_reference", lambda self: reference)
     calls = []
     monkeypatch.setattr("workers.policies.observe_on", lambda *a: calls.append(a[0]) or observe_on(*a))
     _, extras = policy.act(sim, bs)

@@ -347,7 +347,7 @@ def test_every_kind_of_policy_collects_with_the_body_states_on_the_device(charac
     from workers.policies import GaussianPolicy, VAEPolicy, observation_dim
     from workers.rollout import RolloutWorker
     from workers.task_policy import TaskRolloutPolicy
-    from workers.tracking_goal import next_goal
+    from workers.tracking_goal import mimic_goal, next_goal
 
     b, a = character.num_bodies, character.num_actions
     skill = VAEConfig(latent_dim=8, encoder_hidden=(32,), policy="mlp", policy_hidden=(32,))
@@ -370,7 +370,12 @@ def test_every_kind_of_policy_collects_with_the_body_states_on_the_device(charac
         if name == "mimic":
             obs = traj.extras["last_obs"]  # of the states after the last step, made on the device
             s = features_np(traj.next_states[-1])
-            goal = next_goal("mimic", worker.sim, traj.next_states[-1]).numpy()
+            ref = torch.from_numpy(worker.sim.reference_next_body_states())  # on the host, from the library
+            goal = mimic_goal(torch.from_numpy(traj.next_states[-1]), ref).numpy()
+            on_device = next_goal("mimic", worker.sim, traj.next_states[-1]).cpu()
+            np.testing.assert_allclose(on_device, goal, rtol=0, atol=1e-4)
+            ref_s = worker.sim.reference_next_features()
+            np.testing.assert_array_equal(next_goal("reference", worker.sim, traj.next_states[-1]).cpu(), ref_s)
             np.testing.assert_allclose(obs, np.concatenate((s, goal), axis=-1), rtol=0, atol=1e-4)
 
 
