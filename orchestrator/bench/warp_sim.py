@@ -11,14 +11,16 @@ report is their median.
   ControlVAE's state features s come from `workers.models.body_state.features` in torch, the MLP's targets
   are written into the controls view, and the K substeps run (one CUDA graph on a GPU where `WarpPhysics`
   captures it). Worlds whose root falls below `FALLEN_ROOT_M` are reset to reference states drawn from a
-  pool on the device. That height test stands in for the contact test of the simulator interface (on the
-  host so far): it costs one small device-to-host copy a control step, and a reset recomputes every world's
-  positions (`WarpPhysics.set_state`), so the figure includes both.
+  pool on the device. That height test stands in for the simulator interface's contact test: it costs one
+  small device-to-host copy a control step, and a reset recomputes every world's positions
+  (`WarpPhysics.set_state`), so the figure includes both.
 - physics only: the same worlds under constant controls, no policy: the simulator's own ceiling.
 - interface: `WarpSim` (what `sim.backend=warp` runs in a rollout worker today) with N worlds, driven by the
-  same MLP on the device, as a rollout worker's policy runs (`Policy.to`), through the simulator interface:
-  NumPy in and out, the body arrays copied to the host every control step, the features computed there and
-  copied to the MLP, its actions copied back, contact falls and resets as the rollout worker has them.
+  same MLP on the device, as a rollout worker's policy runs (`Policy.to`), through the simulator interface
+  in NumPy: the state features s made on the device and copied to the host every control step
+  (`StepResult.state`), copied back to the MLP, its actions copied back, falls found on the device and
+  resets as the rollout worker has them (a worker beside MuJoCo Warp keeps the body states on the device
+  and skips the first two copies: `bench host --sim warp` measures that path).
 - cpu: `BatchedSim` (MuJoCo C, `mujoco.batch`) with `cpu_envs` environments stepped on `cpu_threads` threads
   (default every core), the same MLP on the CPU with as many torch threads, full simulator interface
   (features, contact falls, resets): `bench sim`'s batched side.
@@ -46,16 +48,6 @@ from workers.sim.warp_physics import WarpPhysics
 
 FALLEN_ROOT_M = 0.5  # root height below which a world counts as fallen and is reset
 RESET_POOL = 4096  # reference start states kept on the device
-
-
-def body_states(phys: WarpPhysics) -> torch.Tensor:
-    """[N, B, 13] body states (position, w x y z rotation, linear and angular velocity at the body's origin)
-    of every world but the world body, computed on the device from MuJoCo Warp's arrays."""
-    xpos, xquat = phys.xpos[:, 1:], phys.xquat[:, 1:]
-    cvel = phys.cvel[:, 1:]
-    ang, lin = cvel[..., :3], cvel[..., 3:]
-    r = xpos - phys.subtree_com[:, 1:2]
-    return torch.cat((xpos, xquat, lin + torch.linalg.cross(ang, r, dim=-1), ang), dim=-1)
 
 
 class WarpRunner:
@@ -87,7 +79,7 @@ class WarpRunner:
         while time.perf_counter() - wall0 < seconds:
             with torch.inference_mode():
                 if self.policy:
-                    phys.ctrl.copy_(self.net(body_state.features(body_states(phys))))
+                    phys.ctrl.copy_(self.net(body_state.features(phys.body_states())))
                 else:
                     phys.ctrl.copy_(self.hold.expand(self.nworld, -1))
             phys.step(self.k)

@@ -256,6 +256,15 @@ class WarpPhysics:
         world, geom = self._contact_world[:n][keep], self._contact_geom[:n][keep]
         return world.cpu().numpy().astype(np.int64), geom.cpu().numpy().astype(np.int64)
 
+    def body_states(self) -> torch.Tensor:
+        """[nworld, nbody - 1, 13] float32 body states on the device (a new tensor) of every body but the world:
+        position, rotation (w x y z), and linear and angular velocity at the body's origin (cvel's linear part,
+        given at the root's subtree centre of mass, moved there: v + w x r), `workers.models.body_state`'s layout."""
+        xpos, cvel = self._xpos[:, 1:], self._cvel[:, 1:]
+        w = cvel[..., :3]
+        lin = cvel[..., 3:] + torch.linalg.cross(w, xpos - self._subtree_com[:, 1:2], dim=-1)
+        return torch.cat((xpos, self._xquat[:, 1:], lin, w), dim=-1)
+
     def worlds_touching(self, geoms: torch.Tensor) -> torch.Tensor:
         """[nworld] bool on the device: whether a contact of the current state (as `contacts` lists them) involves
         a geom that the mask `geoms` [ngeom] (bool, on the device) marks. Computed over the whole pool there, with

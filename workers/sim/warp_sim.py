@@ -120,17 +120,8 @@ class WarpSim(Simulator):
         parts = np.split(flat, widths, axis=1)
         return PhysicsArrays(*(a.reshape(v.shape) for a, v in zip(parts, views, strict=True)))
 
-    def _device_body_states(self) -> torch.Tensor:
-        """[N, B, 13] float32 body states on the device: positions, rotations, each body origin's linear velocity
-        (cvel's, given at the root's subtree centre of mass, plus w x r) and angular velocity."""
-        p = self.physics
-        xpos, cvel = p.xpos[:, 1:], p.cvel[:, 1:]
-        w = cvel[..., :3]
-        lin = cvel[..., 3:] + torch.linalg.cross(w, xpos - p.subtree_com[:, 1:2], dim=-1)
-        return torch.cat((xpos, p.xquat[:, 1:], lin, w), dim=-1)
-
     def _observe(self) -> dict[str, Any]:
-        bs = self._device_body_states()
+        bs = self.physics.body_states()
         p = self.physics
         on_device = DeviceState(p.qpos.clone(), p.qvel.clone(), bs)
         packed = functools.cache(lambda: bs.cpu().numpy())  # copied when read: a worker keeps them on the device
@@ -145,7 +136,7 @@ class WarpSim(Simulator):
 
     def device_body_states(self) -> torch.Tensor:
         """[N, B, 13] float32 body states of the current state, on the device (a new tensor, not a view)."""
-        return self._device_body_states()
+        return self.physics.body_states()
 
     def _to_host(self, bs: torch.Tensor) -> tuple[KinState, np.ndarray]:
         """The `KinState` (float64) and body states (float32) of device body states: one copy with qpos, qvel."""
@@ -163,10 +154,10 @@ class WarpSim(Simulator):
 
     def kin_state(self) -> KinState:
         """The simulated state of all environments (host copies, float64 holding float32 values), made on the device."""
-        return self._to_host(self._device_body_states())[0]
+        return self._to_host(self.physics.body_states())[0]
 
     def body_states(self, env_ids: np.ndarray | None = None) -> np.ndarray:
-        packed = self._device_body_states().cpu().numpy()
+        packed = self.physics.body_states().cpu().numpy()
         return packed if env_ids is None else packed[env_ids]
 
     def device_reference(self) -> DeviceReference:
@@ -176,7 +167,7 @@ class WarpSim(Simulator):
 
     def device_state(self) -> DeviceState:
         p = self.physics
-        return DeviceState(p.qpos.clone(), p.qvel.clone(), self._device_body_states())
+        return DeviceState(p.qpos.clone(), p.qvel.clone(), self.physics.body_states())
 
     def _contact_falls(self) -> np.ndarray:
         if self._fall_mask is None:
