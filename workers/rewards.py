@@ -65,13 +65,18 @@ def imitation_errors(character: Character, sim: KinState, ref: KinState) -> dict
     return {"pose": pose, "velocity": velocity, "end_effector": end_effector, "root": root}
 
 
+def check_weights(weights: Mapping[str, float]) -> None:
+    """Refuse a weight for a term the imitation reward does not have."""
+    unknown = set(weights) - set(IMITATION_TERMS)
+    if unknown:
+        raise ValueError(f"unknown imitation reward terms {sorted(unknown)}; expected {IMITATION_TERMS}")
+
+
 def imitation_reward(
     character: Character, sim: KinState, ref: KinState, weights: Mapping[str, float] = DEFAULT_WEIGHTS
 ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
     """(r [N] in (0, 1], {term: exp(−w_k e_k) [N]}) for simulated and reference states [N]."""
-    unknown = set(weights) - set(IMITATION_TERMS)
-    if unknown:
-        raise ValueError(f"unknown imitation reward terms {sorted(unknown)}; expected {IMITATION_TERMS}")
+    check_weights(weights)
     errors = imitation_errors(character, sim, ref)
     terms = {k: np.exp(-float(weights.get(k, 0.0)) * errors[k]) for k in IMITATION_TERMS}
     total = np.prod(np.stack(list(terms.values())), axis=0)

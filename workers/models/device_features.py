@@ -30,7 +30,7 @@ from workers.models.body_state import (
     to_heading,
 )
 from workers.motion.library import MotionLibrary
-from workers.rewards import DEFAULT_WEIGHTS, IMITATION_TERMS
+from workers.rewards import DEFAULT_WEIGHTS, IMITATION_TERMS, check_weights
 
 
 class DeviceState(NamedTuple):
@@ -165,9 +165,7 @@ def imitation_reward(
     character: Character, sim: DeviceState, ref: DeviceState, weights: Mapping[str, float] = DEFAULT_WEIGHTS
 ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """(r [N], {term: exp(−w_k e_k) [N]}) of `workers.rewards.imitation_reward`, where the states are."""
-    unknown = set(weights) - set(IMITATION_TERMS)
-    if unknown:
-        raise ValueError(f"unknown imitation reward terms {sorted(unknown)}; expected {IMITATION_TERMS}")
+    check_weights(weights)
     errors = imitation_errors(character, sim, ref)
     terms = {k: torch.exp(-float(weights.get(k, 0.0)) * errors[k]) for k in IMITATION_TERMS}
     return torch.stack(list(terms.values())).prod(0), terms
