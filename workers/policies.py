@@ -120,7 +120,9 @@ class Policy:
         raise NotImplementedError
 
     def act(self, sim: Simulator, bs: np.ndarray) -> tuple[np.ndarray, dict[str, np.ndarray]]:
-        """(actions [M, A], per-environment extras {name: [M, ...]}) for body states bs [M, B, 13]."""
+        """(actions [M, A], per-environment extras {name: [M, ...]}) for body states bs [M, B, 13]. The actions
+        are NumPy; an extra may be a tensor on the policy's device beside a simulator that computes on its
+        device (the worker keeps it there until the collect ends)."""
         raise NotImplementedError
 
     def observe(self, sim: Simulator, bs: np.ndarray) -> np.ndarray:
@@ -232,9 +234,11 @@ class GaussianPolicy(Policy):
     def act(self, sim: Simulator, bs: np.ndarray) -> tuple[np.ndarray, dict[str, np.ndarray]]:
         obs = self._observation(sim, bs)
         actions, log_probs = self.module.act(obs, generator=self.generator)
-        actions = actions.cpu().numpy()
         # V(o) is left to the learner, which evaluates it in one batch over the whole rollout.
-        extras = {"obs": obs.cpu().numpy(), "action": actions, "log_prob": log_probs.cpu().numpy()}
+        extras = {"obs": obs, "action": actions, "log_prob": log_probs}
+        if not sim.computes_on_device:  # beside a simulator on its device they stay there (`Policy.act`)
+            extras = {k: v.cpu().numpy() for k, v in extras.items()}
+        actions = actions.cpu().numpy()
         applied = actions + self.base_action(sim) if self.residual else actions
         return applied, extras
 

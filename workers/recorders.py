@@ -10,6 +10,10 @@ at the end (`finish`), whose arrays [T, M, ...] go into the trajectory's extras.
   (`workers.rewards`).
 - `TrackingReward`: ControlVAE's Eq. 20 reward of each collected state against its
   reference, which data balancing reads (`workers.balancing`).
+
+Beside a simulator that computes on its device (MuJoCo Warp: `Simulator.computes_on_device`) they
+compute there, in torch (`workers.models.device_features`), into arrays on the device that `finish`
+copies to the host once; beside MuJoCo C, in NumPy.
 """
 
 from __future__ import annotations
@@ -22,7 +26,7 @@ from workers.body.character import Character
 from workers.body.features import amp_dim, amp_features, state_features
 from workers.models import device_features
 from workers.models.device_features import DeviceState
-from workers.rewards import DEFAULT_WEIGHTS, imitation_reward
+from workers.rewards import DEFAULT_WEIGHTS, IMITATION_TERMS, imitation_reward
 from workers.sim.env import Simulator, StepResult
 from workers.types import KinState
 
@@ -40,6 +44,18 @@ class Recorder:
         raise NotImplementedError
 
 
+def _buffer(shape: tuple[int, ...], sim: Simulator) -> np.ndarray | torch.Tensor:
+    """A float32 array for a collect's records: on the simulator's device beside one that computes there (copied
+    to the host once, by `_host`, at `finish`), else NumPy."""
+    if sim.computes_on_device:
+        return torch.empty(shape, device=sim.device_reference().device)
+    return np.empty(shape, np.float32)
+
+
+def _host(values: np.ndarray | torch.Tensor) -> np.ndarray:
+    return values.cpu().numpy() if isinstance(values, torch.Tensor) else values
+
+
 class AMPFeatures(Recorder):
     """AMP's discriminator observation of each transition: Φ(s_t) and Φ(s_{t+1}), [T, M, amp_dim] each."""
 
@@ -47,14 +63,13 @@ class AMPFeatures(Recorder):
         self.character = character
 
     def begin(self, steps: int, num_envs: int, sim: Simulator) -> None:
-        d = amp_dim(self.character)
-        self.before = np.empty((steps, num_envs, d), np.float32)
-        self.after = np.empty_like(self.before)
+        self.before = _buffer((steps, num_envs, amp_dim(self.character)), sim)
+        self.after = _buffer(tuple(self.before.shape), sim)
         self.current = self._of(sim.device_state()) if sim.computes_on_device else self._of_kin(sim.kin_state())
 
-    def _of(self, state: DeviceState) -> np.ndarray:
-        """Φ(s) computed where the state is (`workers.models.device_features`), copied to the host."""
-        return device_features.amp_features(self.character, state).cpu().numpy()
+    def _of(self, state: DeviceState) -> torch.Tensor:
+        """Φ(s) computed where the state is (`workers.models.device_features`)."""
+        return device_features.amp_features(self.character, state)
 
     def _of_kin(self, kin: KinState) -> np.ndarray:
         return amp_features(self.character, kin)
@@ -66,14 +81,16 @@ class AMPFeatures(Recorder):
         self.current = self.after[t]
 
     def after_reset(self, sim: Simulator, ids: np.ndarray) -> None:
-        self.current = self.current.copy()
         if sim.computes_on_device:
-            self.current[ids] = self._of(sim.device_state().rows(ids))
+            self.current = self.current.clone()
+            rows = torch.as_tensor(ids, device=self.current.device)
+            self.current[rows] = self._of(sim.device_state().rows(rows))
         else:
+            self.current = self.current.copy()
             self.current[ids] = self._of_kin(sim.kin_state()[ids])
 
     def finish(self) -> dict[str, np.ndarray]:
-        return {"amp_obs": self.before, "amp_next_obs": self.after}
+        return {"amp_obs": _host(self.before), "amp_next_obs": _host(self.after)}
 
 
 class ImitationReward(Recorder):
@@ -84,23 +101,21 @@ class ImitationReward(Recorder):
         self.weights = dict(DEFAULT_WEIGHTS if weights is None else weights)
 
     def begin(self, steps: int, num_envs: int, sim: Simulator) -> None:
-        self.reward = np.empty((steps, num_envs), np.float32)
-        self.terms: dict[str, np.ndarray] = {}
+        self.reward = _buffer((steps, num_envs), sim)
+        self.terms = {k: _buffer((steps, num_envs), sim) for k in IMITATION_TERMS}
 
     def record(self, t: int, sim: Simulator, result: StepResult) -> None:
-        if result.on_device is not None:  # where the state is; one copy of the reward and its terms
+        if result.on_device is not None:  # where the state is, against the reference looked up there
             ref = sim.device_reference().state(sim.clip_id, sim.start_frame + sim.steps)
             r, terms = device_features.imitation_reward(self.character, result.on_device, ref, self.weights)
-            r, *values = torch.stack([r, *terms.values()]).cpu().numpy()
-            terms = dict(zip(terms, values, strict=True))
         else:
             r, terms = imitation_reward(self.character, result.kin, sim.reference_state(), self.weights)
         self.reward[t] = r
         for k, v in terms.items():
-            self.terms.setdefault(k, np.empty_like(self.reward))[t] = v
+            self.terms[k][t] = v
 
     def finish(self) -> dict[str, np.ndarray]:
-        return {"reward": self.reward, **{f"reward/{k}": v for k, v in self.terms.items()}}
+        return {"reward": _host(self.reward), **{f"reward/{k}": _host(v) for k, v in self.terms.items()}}
 
 
 class TrackingReward(Recorder):
@@ -113,24 +128,26 @@ class TrackingReward(Recorder):
         self.weights = np.asarray(weights, np.float64)
         self.temperature = temperature
 
-    def _of(self, sim: Simulator, ids: np.ndarray | slice = slice(None)) -> np.ndarray:
-        """The reward of environments `ids` in their current state against their current reference frames."""
-        clips, frames = sim.clip_id[ids], (sim.start_frame + sim.steps)[ids]
+    def _of(self, sim: Simulator, ids: np.ndarray | None = None) -> np.ndarray | torch.Tensor:
+        """The reward of environments `ids` (all by default) in their current state against their current
+        reference frames; on the device beside a simulator that computes there."""
+        rows = slice(None) if ids is None else ids
+        clips, frames = sim.clip_id[rows], (sim.start_frame + sim.steps)[rows]
         if sim.computes_on_device:
             state = sim.device_state()
-            state = state if isinstance(ids, slice) else state.rows(ids)
+            state = state if ids is None else state.rows(ids)
             return self._on_device(sim, device_features.state_features(state), clips, frames)
-        state = state_features(sim.kin_state()[ids])
+        state = state_features(sim.kin_state()[rows])
         return tracking_reward(state, sim.library.features(clips, frames), self.weights, self.temperature)
 
-    def _on_device(self, sim: Simulator, state: torch.Tensor, clips: np.ndarray, frames: np.ndarray) -> np.ndarray:
+    def _on_device(self, sim: Simulator, state: torch.Tensor, clips: np.ndarray, frames: np.ndarray) -> torch.Tensor:
         """Eq. 20 computed where the state is, from s there and the reference's s looked up there."""
         ref = sim.device_reference().frame_features(clips, frames)
         weights = torch.as_tensor(self.weights, dtype=torch.float32, device=state.device)
-        return device_features.tracking_reward(state, ref, weights, self.temperature).cpu().numpy()
+        return device_features.tracking_reward(state, ref, weights, self.temperature)
 
     def begin(self, steps: int, num_envs: int, sim: Simulator) -> None:
-        self.reward = np.empty((steps, num_envs), np.float32)
+        self.reward = _buffer((steps, num_envs), sim)
         self.current = self._of(sim)
 
     def record(self, t: int, sim: Simulator, result: StepResult) -> None:
@@ -142,9 +159,12 @@ class TrackingReward(Recorder):
             self.current = tracking_reward(result.state, result.ref_state, self.weights, self.temperature)
 
     def after_reset(self, sim: Simulator, ids: np.ndarray) -> None:
-        self.current[ids] = self._of(sim, ids)
+        if isinstance(self.current, torch.Tensor):
+            self.current[torch.as_tensor(ids, device=self.current.device)] = self._of(sim, ids)
+        else:
+            self.current[ids] = self._of(sim, ids)
 
     after_switch = after_reset  # the same state against its new reference
 
     def finish(self) -> dict[str, np.ndarray]:
-        return {"reward": self.reward}
+        return {"reward": _host(self.reward)}

@@ -135,8 +135,10 @@ class RolloutWorker:
             a, step_extras = policy.act(sim, self._for_policy(bs))
             actions[t] = a
             for k, v in step_extras.items():
-                if k not in extras:
-                    extras[k] = np.empty((steps,) + v.shape, v.dtype)
+                if k not in extras:  # where the policy made it: on its device, or NumPy
+                    on = isinstance(v, torch.Tensor)
+                    shape = (steps, *v.shape)
+                    extras[k] = torch.empty(shape, dtype=v.dtype, device=v.device) if on else np.empty(shape, v.dtype)
                 extras[k][t] = v
             result = sim.step(a)
             next_states[t] = result.on_device.body_states if on_device else result.body_states
@@ -171,6 +173,7 @@ class RolloutWorker:
                 switch_counts[0] += int(switched[t].sum())
         for r in self.recorders:
             extras.update(r.finish())
+        extras = {k: v.cpu().numpy() if isinstance(v, torch.Tensor) else v for k, v in extras.items()}  # one copy
         extras["truncated"] = truncated
         if self.switch_probability > 0:
             extras["switched"] = switched

@@ -150,6 +150,7 @@ def test_a_gaussian_policy_beside_a_simulator_on_its_device_observes_there(chara
     calls = []
     monkeypatch.setattr("workers.policies.observe_on", lambda *a: calls.append(a[0]) or observe_on(*a))
     _, extras = policy.act(sim, bs)
+    assert all(isinstance(v, torch.Tensor) for v in extras.values())  # kept on the device for the worker
     np.testing.assert_array_equal(policy.observe(sim, bs), extras["obs"])
     assert calls == [torch.device("cpu")] * 2
     np.testing.assert_allclose(extras["obs"], observe("imitation", sim, bs), rtol=0, atol=1e-5)

@@ -297,27 +297,26 @@ def test_the_rewards_recorded_on_the_device_are_numpys(warp, character, library)
     """The tracker's imitation reward from the step's state on the device against the reference looked up there,
     and ControlVAE's tracking reward in a worker (its first state, every step's, and resets'), agree with
     the NumPy recorders' to float32 rounding."""
-    import dataclasses
-
     from workers.balancing import tracking_reward
     from workers.learners.vae import VAEConfig, state_weight_vector
     from workers.models.body_state import features_np
     from workers.policies import VAEPolicy
     from workers.recorders import ImitationReward, TrackingReward
+    from workers.rewards import imitation_reward
     from workers.rollout import RolloutWorker
 
     reset_both([warp], [WALK, WALK, KICK, KICK], [5, 20, 3, 10])
     r = warp.step(tracking_actions(warp, np.random.default_rng(4), noise=0.3))
-    recorded = []
-    for result in (r, dataclasses.replace(r, on_device=None)):  # on the device, then NumPy's from the KinState
-        rec = ImitationReward(character, {"pose": 0.2, "velocity": 0.01, "end_effector": 4.0, "root": 1.0})
-        rec.begin(1, N, warp)
-        rec.record(0, warp, result)
-        recorded.append(rec.finish())
-    (on, host) = recorded
-    assert np.ptp(host["reward"]) > 1e-3
-    for key, value in host.items():
-        np.testing.assert_allclose(on[key], value, rtol=0, atol=1e-4, err_msg=key)
+    weights = {"pose": 0.2, "velocity": 0.01, "end_effector": 4.0, "root": 1.0}
+    rec = ImitationReward(character, weights)
+    rec.begin(1, N, warp)
+    rec.record(0, warp, r)  # on the device, from the step's state there
+    on = rec.finish()
+    reward, terms = imitation_reward(character, r.kin, warp.reference_state(), weights)  # NumPy's, on the host
+    assert np.ptp(reward) > 1e-3
+    for key, value in {"reward": reward, **{f"reward/{k}": v for k, v in terms.items()}}.items():
+        assert on[key].shape == (1, N), key
+        np.testing.assert_allclose(on[key][0], value, rtol=0, atol=1e-4, err_msg=key)
 
     weights = state_weight_vector(character.num_bodies, VAEConfig().state_weights).numpy()
     vae = VAEConfig(latent_dim=8, encoder_hidden=(32,), policy="mlp", policy_hidden=(64,))
