@@ -137,7 +137,7 @@ class TrackingReward(Recorder):
             state = sim.device_state()
             state = state if ids is None else state.rows(ids)
             return self._on_device(sim, device_features.state_features(state), clips, frames)
-        state = state_features(sim.kin_state()[rows])
+        state = state_features(sim.kin_state())[rows]
         return tracking_reward(state, sim.library.features(clips, frames), self.weights, self.temperature)
 
     def _on_device(self, sim: Simulator, state: torch.Tensor, clips: np.ndarray, frames: np.ndarray) -> torch.Tensor:
