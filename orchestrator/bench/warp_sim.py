@@ -186,8 +186,8 @@ def format_table(r: dict) -> str:
         )
     lines.append(
         "control/s: control steps per second summed over worlds (physics/s: x K substeps); warp/C: median over "
-        "rounds of the Warp+MLP rate over MuJoCo C's with the same MLP; WarpSim: the simulator interface a rollout "
-        "worker runs on warp today (the state copied to the host and back, the MLP on the device); resets/step: worlds "
-        "reset a control step"
+        "rounds of the Warp+MLP rate over MuJoCo C's with the same MLP; WarpSim: the simulator interface in NumPy (s "
+        "made on the device, copied to the host and back to the MLP there; a rollout worker keeps its states on the "
+        "device: bench host --sim warp); resets/step: worlds reset a control step"
     )
     return "\n".join(lines)
