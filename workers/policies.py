@@ -220,9 +220,7 @@ class GaussianPolicy(Policy):
         self.version = int(weights.version)
 
     def observe(self, sim: Simulator, bs: np.ndarray) -> np.ndarray:
-        if sim.computes_on_device:
-            return observe_on(self.device, self.obs, sim, bs).cpu().numpy()
-        return observe(self.obs, sim, bs)
+        return self._observation(sim, bs).cpu().numpy()
 
     def _observation(self, sim: Simulator, bs: np.ndarray) -> torch.Tensor:
         """The observation on the policy's device: made there beside a simulator that computes on its device."""

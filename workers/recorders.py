@@ -24,7 +24,7 @@ import torch
 from workers.balancing import tracking_reward
 from workers.body.character import Character
 from workers.body.features import amp_dim, amp_features, state_features
-from workers.models import device_features
+from workers.models import body_state, device_features
 from workers.models.device_features import DeviceState
 from workers.rewards import DEFAULT_WEIGHTS, IMITATION_TERMS, imitation_reward
 from workers.sim.env import Simulator, StepResult
@@ -48,7 +48,7 @@ def _buffer(shape: tuple[int, ...], sim: Simulator) -> np.ndarray | torch.Tensor
     """A float32 array for a collect's records: on the simulator's device beside one that computes there (copied
     to the host once, by `_host`, at `finish`), else NumPy."""
     if sim.computes_on_device:
-        return torch.empty(shape, device=sim.device_reference().device)
+        return torch.empty(shape, device=sim.torch_device)
     return np.empty(shape, np.float32)
 
 
@@ -136,7 +136,7 @@ class TrackingReward(Recorder):
         if sim.computes_on_device:
             state = sim.device_state()
             state = state if ids is None else state.rows(ids)
-            return self._on_device(sim, device_features.state_features(state), clips, frames)
+            return self._on_device(sim, body_state.features(state.body_states), clips, frames)
         state = state_features(sim.kin_state())[rows]
         return tracking_reward(state, sim.library.features(clips, frames), self.weights, self.temperature)
 
@@ -153,7 +153,7 @@ class TrackingReward(Recorder):
     def record(self, t: int, sim: Simulator, result: StepResult) -> None:
         self.reward[t] = self.current
         if result.on_device is not None:
-            s = device_features.state_features(result.on_device)
+            s = body_state.features(result.on_device.body_states)
             self.current = self._on_device(sim, s, sim.clip_id, sim.start_frame + sim.steps)
         else:
             self.current = tracking_reward(result.state, result.ref_state, self.weights, self.temperature)

@@ -101,10 +101,10 @@ def frozen_worker(
         weights = state_weight_vector(character.num_bodies, VAEConfig().state_weights).numpy()
         recorders = [TrackingReward(weights)]
     if sim == "warp":
-        sim = frozen_warp_sim(character, library, envs, device, seed)
+        frozen_sim = frozen_warp_sim(character, library, envs, device, seed)
     else:
-        sim = FrozenSim(character, library, envs, SimConfig(), seed=seed)
-    frozen = RolloutWorker(character, library, envs, worker.policy, seed=seed, recorders=recorders, sim=sim)
+        frozen_sim = FrozenSim(character, library, envs, SimConfig(), seed=seed)
+    frozen = RolloutWorker(character, library, envs, worker.policy, seed=seed, recorders=recorders, sim=frozen_sim)
     frozen.policy.to(device)
     return frozen
 

@@ -8,7 +8,7 @@ import torch
 
 from workers.body.features import amp_features
 from workers.models import device_features
-from workers.models.body_state import pack
+from workers.models.body_state import features, pack
 from workers.models.device_features import DeviceState
 from workers.sim.env import BatchedSim
 
@@ -86,6 +86,6 @@ def test_rewards_are_the_numpy_ones(character, walk_run, stepped, kin):
     weights = np.linspace(0.5, 2.0, state_features(kin).shape[1])
     s, s_ref = state_features(kin), walk_run.features(clips, frames)
     got = device_features.tracking_reward(
-        device_features.state_features(device_state(kin)), torch.as_tensor(s_ref), torch.as_tensor(weights), 20.0
+        features(device_state(kin).body_states), torch.as_tensor(s_ref), torch.as_tensor(weights), 20.0
     )
     np.testing.assert_allclose(got.numpy(), tracking_reward(s, s_ref, weights), rtol=0, atol=1e-5)

@@ -21,7 +21,6 @@ from workers.models.body_state import (
     LIN,
     POS,
     QUAT,
-    features,
     from_heading,
     heading_cos_sin,
     pack,
@@ -169,8 +168,3 @@ def imitation_reward(
     errors = imitation_errors(character, sim, ref)
     terms = {k: torch.exp(-float(weights.get(k, 0.0)) * errors[k]) for k in IMITATION_TERMS}
     return torch.stack(list(terms.values())).prod(0), terms
-
-
-def state_features(state: DeviceState) -> torch.Tensor:
-    """s [N, D] of a device state (`workers.models.body_state.features`)."""
-    return features(state.body_states)

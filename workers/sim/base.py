@@ -36,6 +36,7 @@ from typing import Any, NamedTuple
 
 import mujoco
 import numpy as np
+import torch
 
 from workers.body.character import Character
 from workers.body.features import state_features
@@ -296,11 +297,11 @@ class Simulator(abc.ABC):
         self._advance(actions)
         self.steps += 1
         observed = self._observe()
+        head_pos = observed.pop("head_xpos")
         frames = self.start_frame + self.steps
         if self.config.tracking_error_m > 0:
             head = self.character.head_body
             ref_head = self.library.body_positions(self.clip_id, frames, head)
-            head_pos = observed.pop("head_xpos")
             bad = np.linalg.norm(head_pos - ref_head, axis=-1) > self.config.tracking_error_m
             self._bad_head_steps = np.where(bad, self._bad_head_steps + 1, 0)
             tracking_failed = self._bad_head_steps >= self._head_limit_steps
@@ -317,7 +318,7 @@ class Simulator(abc.ABC):
             clip_ended=clip_ended,
             timeout=timeout,
             end_on_fall=self.config.end_on_fall,
-            **{k: v for k, v in observed.items() if k != "head_xpos"},
+            **observed,
         )
 
     def switch_reference(self, env_ids: np.ndarray, clip_ids: np.ndarray, frames: np.ndarray) -> None:
@@ -354,7 +355,12 @@ class Simulator(abc.ABC):
         None here."""
         return None
 
-    def device_body_states(self):
+    @property
+    def torch_device(self) -> torch.device:
+        """Where the state's tensors live: the CPU here, the device of MuJoCo Warp's worlds there."""
+        return torch.device("cpu")
+
+    def device_body_states(self) -> torch.Tensor:
         """[N, B, 13] float32 body states on `config.device` (a torch tensor), where the backend computes there."""
         raise NotImplementedError(f"{type(self).__name__} keeps its state on the host: use body_states()")
 

@@ -134,6 +134,10 @@ class WarpSim(Simulator):
             "head_xpos": head,
         }
 
+    @property
+    def torch_device(self) -> torch.device:
+        return self.physics.torch_device
+
     def device_body_states(self) -> torch.Tensor:
         """[N, B, 13] float32 body states of the current state, on the device (a new tensor, not a view)."""
         return self.physics.body_states()
