@@ -23,10 +23,12 @@ trajectories whichever process runs the worker.
 
 Inference runs batched, in eval mode and without gradients, on the policy's `device` (`Policy.to`;
 the rollout worker puts it on its simulator's device, a GPU with MuJoCo Warp on CUDA): the
-networks live there, their inputs are copied there and the actions and extras come back to the
-host as NumPy. The noise is drawn from the worker's CPU generator and then moved
-(`workers.models.nets.gaussian`), so a seed gives the same draws on either device and the
-worker's checkpoint holds one random stream.
+networks live there and their inputs are copied there. The actions and extras come back to the host
+as NumPy, except beside a simulator that computes on its device (MuJoCo Warp,
+`Simulator.computes_on_device`): there they stay tensors on the device, the simulator takes the
+actions there and the worker keeps both until its collect ends. The noise is drawn from the
+worker's CPU generator and then moved (`workers.models.nets.gaussian`), so a seed gives the same
+draws on either device and the worker's checkpoint holds one random stream.
 """
 
 from __future__ import annotations
@@ -120,10 +122,17 @@ class Policy:
         raise NotImplementedError
 
     def act(self, sim: Simulator, bs: np.ndarray) -> tuple[np.ndarray, dict[str, np.ndarray]]:
-        """(actions [M, A], per-environment extras {name: [M, ...]}) for body states bs [M, B, 13]. The actions
-        are NumPy; an extra may be a tensor on the policy's device beside a simulator that computes on its
-        device (the worker keeps it there until the collect ends)."""
+        """(actions [M, A], per-environment extras {name: [M, ...]}) for body states bs [M, B, 13]. NumPy, or
+        beside a simulator that computes on its device, the actions and any extra may be tensors on the
+        policy's device (`Simulator.step` takes them there; the worker keeps them there until the collect
+        ends)."""
         raise NotImplementedError
+
+    @staticmethod
+    def output(sim: Simulator, t: torch.Tensor) -> np.ndarray | torch.Tensor:
+        """What `act` returns of a tensor t it made: t itself beside a simulator that computes on its device,
+        else t as NumPy."""
+        return t if sim.computes_on_device else t.cpu().numpy()
 
     def observe(self, sim: Simulator, bs: np.ndarray) -> np.ndarray:
         raise NotImplementedError
@@ -181,7 +190,7 @@ class VAEPolicy(Policy):
         z = mean + log_std.exp() * gaussian(mean.shape, self.generator, device=self.device)
         a = self.controller.act(s, z)
         a = a + self.action_noise * gaussian(a.shape, self.generator, device=self.device)
-        return a.cpu().numpy(), {}
+        return self.output(sim, a), {}
 
     def episodes_reset(self, ids: np.ndarray) -> None:
         self.use_prior[ids] = self.rng.random(len(ids)) < self.prior_probability
@@ -215,6 +224,12 @@ class GaussianPolicy(Policy):
         """The PD targets [M, A] that hold the reference's next pose (the zero offset of a residual policy)."""
         return sim.library.pd_targets(sim.clip_id, sim.start_frame + sim.steps + 1)
 
+    def _base_action_on(self, sim: Simulator) -> torch.Tensor:
+        """`base_action` on the policy's device (looked up there beside a simulator that computes on its device)."""
+        if sim.computes_on_device:
+            return sim.device_reference().pd_targets(sim.clip_id, sim.start_frame + sim.steps + 1).to(self.device)
+        return self.tensor(self.base_action(sim))
+
     def set_weights(self, weights: Weights) -> None:
         self.module.load_state_dict(weights.state)
         self.version = int(weights.version)
@@ -233,21 +248,22 @@ class GaussianPolicy(Policy):
         obs = self._observation(sim, bs)
         actions, log_probs = self.module.act(obs, generator=self.generator)
         # V(o) is left to the learner, which evaluates it in one batch over the whole rollout.
-        extras = {"obs": obs, "action": actions, "log_prob": log_probs}
-        if not sim.computes_on_device:  # beside a simulator on its device they stay there (`Policy.act`)
-            extras = {k: v.cpu().numpy() for k, v in extras.items()}
-        actions = actions.cpu().numpy()
-        applied = actions + self.base_action(sim) if self.residual else actions
-        return applied, extras
+        extras = {k: self.output(sim, v) for k, v in (("obs", obs), ("action", actions), ("log_prob", log_probs))}
+        applied = actions + self._base_action_on(sim) if self.residual else actions
+        return self.output(sim, applied), extras
 
     def deployable(self, sim: Simulator, bs: np.ndarray) -> tuple[torch.nn.Module, np.ndarray]:
         return ActorMean(self.module), self.observe(sim, bs)
 
     @torch.no_grad()
+    def mean_on_device(self, sim: Simulator, bs: np.ndarray) -> torch.Tensor:
+        """The deterministic PD targets [M, A] on the policy's device."""
+        mean = self.module.mean(self._observation(sim, bs))
+        return mean + self._base_action_on(sim) if self.residual else mean
+
     def mean_action(self, sim: Simulator, bs: np.ndarray) -> np.ndarray:
         """The deterministic PD targets [M, A] (evaluation)."""
-        mean = self.module.mean(self._observation(sim, bs)).cpu().numpy()
-        return mean + self.base_action(sim) if self.residual else mean
+        return self.mean_on_device(sim, bs).cpu().numpy()
 
 
 def expert_module(expert: dict[str, Any], num_bodies: int, action_dim: int) -> ActorCritic:
@@ -269,6 +285,8 @@ class ExpertPolicy(Policy):
     expert acts with its mean (on a residual expert, offset from the reference's next pose); a VAE
     expert (ControlVAE's posterior) with z = μ_q(s, s̃_{t+1}).
     """
+
+    reads_device_states = True
 
     def __init__(self, num_bodies: int, action_dim: int, noise: float = 0.05):
         if noise < 0:
@@ -300,16 +318,20 @@ class ExpertPolicy(Policy):
         self.version = int(weights.version)
 
     @torch.no_grad()
-    def mean_action(self, sim: Simulator, bs: np.ndarray) -> np.ndarray:
+    def mean_on_device(self, sim: Simulator, bs: np.ndarray) -> torch.Tensor:
+        """The expert's deterministic PD targets [M, A] on the policy's device."""
         if self.inner is not None:
-            return self.inner.mean_action(sim, bs)
+            return self.inner.mean_on_device(sim, bs)
         if self.controller is None:
             raise RuntimeError("the expert has no weights yet")
         s = body_state.features(self.tensor(bs))
         posterior, _ = self.controller.encode(s, next_goal(self.controller.goal, sim, bs).to(self.device))
-        return self.controller.act(s, posterior.mean).cpu().numpy()
+        return self.controller.act(s, posterior.mean)
+
+    def mean_action(self, sim: Simulator, bs: np.ndarray) -> np.ndarray:
+        return self.mean_on_device(sim, bs).cpu().numpy()
 
     def act(self, sim: Simulator, bs: np.ndarray) -> tuple[np.ndarray, dict[str, np.ndarray]]:
-        a = torch.from_numpy(np.asarray(self.mean_action(sim, bs), np.float32))
-        a = a + self.noise * gaussian(a.shape, self.generator)
-        return a.numpy(), {}
+        a = self.mean_on_device(sim, bs)
+        a = a + self.noise * gaussian(a.shape, self.generator, device=self.device)
+        return self.output(sim, a), {}

@@ -110,13 +110,14 @@ class RolloutWorker:
         t0 = time.perf_counter()
         sim, m, policy = self.sim, self.num_envs, self.policy
         # Beside a simulator that computes on its device, the body states stay there (the policy reads them
-        # there, or a host copy if it cannot) and the trajectory's leave it in one copy at the end.
+        # there, or a host copy if it cannot); so do the actions of a policy that acts there (`Policy.act`), which
+        # the simulator takes as they are. The trajectory's leave the device in one copy at the end.
         on_device = sim.computes_on_device
         bs = sim.device_body_states() if on_device else sim.body_states()
         shape = (steps, m, sim.character.num_bodies, 13)
         states = torch.empty(shape, device=bs.device) if on_device else np.empty(shape, np.float32)
         next_states = torch.empty_like(states) if on_device else np.empty_like(states)
-        actions = np.empty((steps, m, sim.action_dim), np.float32)
+        actions: np.ndarray | torch.Tensor | None = None  # made at the first step, where the policy's actions are
         done = np.empty((steps, m), bool)
         truncated = np.empty((steps, m), bool)
         switched = np.zeros((steps, m), bool)
@@ -133,12 +134,12 @@ class RolloutWorker:
             clip_id[t] = sim.clip_id
             frame[t] = sim.start_frame + sim.steps
             a, step_extras = policy.act(sim, self._for_policy(bs))
+            if actions is None:
+                actions = _rows_like(steps, a, float32=True)
             actions[t] = a
             for k, v in step_extras.items():
-                if k not in extras:  # where the policy made it: on its device, or NumPy
-                    on = isinstance(v, torch.Tensor)
-                    shape = (steps, *v.shape)
-                    extras[k] = torch.empty(shape, dtype=v.dtype, device=v.device) if on else np.empty(shape, v.dtype)
+                if k not in extras:
+                    extras[k] = _rows_like(steps, v)
                 extras[k][t] = v
             result = sim.step(a)
             next_states[t] = result.on_device.body_states if on_device else result.body_states
@@ -173,7 +174,7 @@ class RolloutWorker:
                 switch_counts[0] += int(switched[t].sum())
         for r in self.recorders:
             extras.update(r.finish())
-        extras = {k: v.cpu().numpy() if isinstance(v, torch.Tensor) else v for k, v in extras.items()}  # one copy
+        extras = {k: _host(v) for k, v in extras.items()}  # one copy
         extras["truncated"] = truncated
         if self.switch_probability > 0:
             extras["switched"] = switched
@@ -185,8 +186,9 @@ class RolloutWorker:
             extras["final_obs"] = np.concatenate(final_obs) if final_obs else np.zeros((0, width), np.float32)
         if "reward" in extras:
             self._count_returns(extras["reward"], done)
-        if on_device:
-            states, next_states = states.cpu().numpy(), next_states.cpu().numpy()
+        if actions is None:  # no steps
+            actions = np.empty((0, m, sim.action_dim), np.float32)
+        states, next_states, actions = map(_host, (states, next_states, actions))
         self.steps_collected += steps * m
         self.collect_seconds += time.perf_counter() - t0
         return Trajectory(states, next_states, actions, done, clip_id, frame, self.version, self.worker_id, extras)
@@ -223,7 +225,7 @@ class RolloutWorker:
                 if not running.any():
                     break
                 a, _ = self.policy.act(sim, bs)
-                actions[t] = a
+                actions[t] = _host(a)
                 result = sim.step(a)
                 bs = result.body_states
                 states[t + 1] = bs
@@ -351,3 +353,16 @@ class RolloutWorker:
         self.collect_seconds = float(c["collect_seconds"])
         self.ends = {k: int(c[f"ends.{k}"]) for k in self.ends}
         sim.restore_state(envs)  # physics, warm start and reference bookkeeping
+
+
+def _rows_like(steps: int, v: np.ndarray | torch.Tensor, float32: bool = False) -> np.ndarray | torch.Tensor:
+    """An empty array of `steps` rows shaped like v, where v is (a tensor on v's device, or NumPy), of v's
+    dtype or float32."""
+    if isinstance(v, torch.Tensor):
+        return torch.empty((steps, *v.shape), dtype=torch.float32 if float32 else v.dtype, device=v.device)
+    return np.empty((steps, *np.shape(v)), np.float32 if float32 else np.asarray(v).dtype)
+
+
+def _host(v: np.ndarray | torch.Tensor) -> np.ndarray:
+    """v as NumPy on the host (a tensor copied from its device)."""
+    return v.cpu().numpy() if isinstance(v, torch.Tensor) else v

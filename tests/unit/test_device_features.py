@@ -61,6 +61,9 @@ def test_the_reference_on_the_device_is_the_librarys_through_cycles(walk_run):
     np.testing.assert_allclose(got.qvel.numpy(), want.qvel, rtol=0, atol=2e-5)
     np.testing.assert_allclose(got.body_states.numpy(), pack(want), rtol=0, atol=2e-5)
     np.testing.assert_array_equal(ref.frame_features(clips, frames).numpy(), walk_run.features(clips, frames))
+    targets = ref.pd_targets(clips, frames)  # joints only: the stored frame's whatever the cycle
+    np.testing.assert_array_equal(targets.numpy(), walk_run.pd_targets(clips, frames))
+    assert np.abs(targets[1].numpy() - walk_run.pd_targets(clips[:1], frames[:1])[0]).max() > 1e-2
 
 
 def test_rewards_are_the_numpy_ones(character, walk_run, stepped, kin):

@@ -142,15 +142,19 @@ def test_a_gaussian_policy_beside_a_simulator_on_its_device_observes_there(chara
     module = build_actor_critic(2 * StateLayout(character.num_bodies).dim, character.num_actions, PPO)
     policy = GaussianPolicy(module, "imitation", residual=True)
     policy.bind(M, np.random.default_rng(1), torch.Generator().manual_seed(2))
-    _, extras = policy.act(sim, bs)
+    host_actions, extras = policy.act(sim, bs)
+    assert isinstance(host_actions, np.ndarray)
     np.testing.assert_array_equal(extras["obs"], observe("imitation", sim, bs))
     monkeypatch.setattr(type(sim), "computes_on_device", True)  # and its library's frames "on the device":
     reference = DeviceReference(walk_run, "cpu")
     monkeypatch.setattr(type(sim), "device_reference", lambda self: reference)
     calls = []
     monkeypatch.setattr("workers.policies.observe_on", lambda *a: calls.append(a[0]) or observe_on(*a))
-    _, extras = policy.act(sim, bs)
-    assert all(isinstance(v, torch.Tensor) for v in extras.values())  # kept on the device for the worker
+    policy.bind(M, np.random.default_rng(1), torch.Generator().manual_seed(2))
+    actions, extras = policy.act(sim, bs)
+    assert all(isinstance(v, torch.Tensor) for v in (actions, *extras.values()))  # kept on the device
+    # the same draws; the residual's offset looked up on the device
+    np.testing.assert_allclose(actions.numpy(), host_actions, rtol=0, atol=1e-4)
     np.testing.assert_array_equal(policy.observe(sim, bs), extras["obs"])
     assert calls == [torch.device("cpu")] * 2
     np.testing.assert_allclose(extras["obs"], observe("imitation", sim, bs), rtol=0, atol=1e-5)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import sys
 
+import numpy as np
 import pytest
 
 from workers.sim.env import BatchedSim, SimConfig, make_sim
@@ -40,3 +41,15 @@ def test_make_sim_builds_batched_sim_without_the_warp_extra(character, walk_run,
     sim = make_sim(character, walk_run, 2, seed=3)
     assert type(sim) is BatchedSim and sim.config == SimConfig() and sim.num_envs == 2
     assert type(make_sim(character, walk_run, 1, SimConfig(sim_hz=120.0))) is BatchedSim
+
+
+def test_mujoco_c_steps_a_tensor_of_actions_as_their_numpy(character, walk_run):
+    """`Simulator.step` takes a tensor as well as NumPy; MuJoCo C copies it to the host: the same bits."""
+    import torch
+
+    sims = [make_sim(character, walk_run, 3, seed=1) for _ in range(2)]
+    actions = character.qpos_to_action(sims[0].kin_state().qpos).astype(np.float32) + 0.1
+    results = [sims[0].step(actions), sims[1].step(torch.from_numpy(actions))]
+    np.testing.assert_array_equal(results[1].kin.qpos, results[0].kin.qpos)
+    with pytest.raises(ValueError, match=r"actions must be \[3, 28\], got \[2, 28\]"):
+        sims[1].step(torch.zeros(2, 28))

@@ -379,6 +379,37 @@ def test_every_kind_of_policy_collects_with_the_body_states_on_the_device(charac
 
 
 @pytest.mark.slow
+def test_the_actions_stay_on_the_device_and_are_the_ones_applied(character, library, monkeypatch):
+    """Beside MuJoCo Warp a policy's actions stay tensors on the device: the simulator takes them there and
+    the trajectory stores what it applied. A residual policy's offset is the reference's next PD targets,
+    looked up on the device; an expert acting on the device adds its noise there."""
+    from workers.learners.ppo import PPOConfig, build_actor_critic
+    from workers.policies import ExpertPolicy, GaussianPolicy, observation_dim
+    from workers.rollout import RolloutWorker
+
+    b, a = character.num_bodies, character.num_actions
+    torch.manual_seed(0)
+    module = build_actor_critic(observation_dim("imitation", 16 * b + 3), a, PPOConfig())
+    expert = {"kind": "ppo", "config": PPOConfig(), "module": module.state_dict(), "observation": "imitation"}
+    config = SimConfig(backend="warp", device=DEVICE, max_episode_steps=3)
+    applied: list[torch.Tensor] = []
+    advance = WarpSim._advance
+    monkeypatch.setattr(WarpSim, "_advance", lambda self, x: applied.append(x.clone()) or advance(self, x))
+    for name, policy in (("ppo", GaussianPolicy(module, "imitation", residual=True)), ("expert", ExpertPolicy(b, a))):
+        applied.clear()
+        worker = RolloutWorker(character, library, 3, policy, config, seed=5)
+        if name == "expert":
+            worker.set_weights(Weights(1, {**expert, "residual": True}))
+        traj = worker.collect(5)
+        assert all(isinstance(x, torch.Tensor) and x.device == worker.sim.torch_device for x in applied), name
+        assert isinstance(traj.actions, np.ndarray) and traj.actions.dtype == np.float32, name
+        np.testing.assert_array_equal(traj.actions, torch.stack(applied).cpu().numpy(), err_msg=name)
+        if name == "ppo":  # the applied PD targets are the sample plus the reference's next pose's
+            base = library.pd_targets(traj.clip_id, traj.frame + 1)
+            np.testing.assert_allclose(traj.actions - traj.extras["action"], base, rtol=0, atol=1e-5)
+
+
+@pytest.mark.slow
 def test_an_unstable_world_is_reset_and_counted(warp):
     """MuJoCo C resets an environment with non-finite state to the default pose and warns; so does WarpSim."""
     reset_both([warp], [WALK] * N, [5, 10, 15, 20])

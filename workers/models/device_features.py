@@ -90,6 +90,7 @@ class DeviceReference:
             return torch.as_tensor(np.asarray(a, np.float32), device=self.device)
 
         self.qpos, self.qvel, self.body_states, self.features = map(table, (kin.qpos, kin.qvel, pack(kin), feats))
+        self._pd_targets = table(library.stored_pd_targets())
 
     def rows(self, clip_ids: np.ndarray, frames: np.ndarray) -> tuple[torch.Tensor, np.ndarray]:
         rows, cycles = self.library.rows(np.asarray(clip_ids, int), np.asarray(frames, int))
@@ -128,6 +129,11 @@ class DeviceReference:
     def frame_features(self, clip_ids: np.ndarray, frames: np.ndarray) -> torch.Tensor:
         """s [N, D] of the reference at the given frames (`MotionLibrary.features`; s is unchanged by cycles)."""
         return self.features[self.rows(clip_ids, frames)[0]]
+
+    def pd_targets(self, clip_ids: np.ndarray, frames: np.ndarray) -> torch.Tensor:
+        """[N, A] PD targets holding the reference's joints at the given frames (`MotionLibrary.pd_targets`; a
+        cycle turns and moves the root only, so the joints' targets are the stored frame's)."""
+        return self._pd_targets[self.rows(clip_ids, frames)[0]]
 
 
 def tracking_reward(state: torch.Tensor, ref_state: torch.Tensor, weights: torch.Tensor, temperature: float):

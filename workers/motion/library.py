@@ -138,6 +138,10 @@ class MotionLibrary:
         lookup elsewhere (`workers.models.device_features.DeviceReference`) indexes by `rows` and `cycle_power`."""
         return KinState(*(getattr(self, "_" + f) for f in _FRAME_FIELDS)), self._features
 
+    def stored_pd_targets(self) -> np.ndarray:
+        """[total_frames, A] float32: `pd_targets`' table, every stored frame's, in the flat row order of `rows`."""
+        return self._pd_targets
+
     def rows(self, clip_ids: np.ndarray, frames: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Rows of the flat arrays and the number of whole cycles past the clip's end."""
         n = self.num_frames[clip_ids]

@@ -14,7 +14,8 @@ A backend subclasses it and fills in the physics through a few hooks:
 - `_build_physics()`: make the N worlds of `self.model` (called once, before the first reset);
 - `_set_physics_state(env_ids, qpos, qvel, ctrl)`: put those environments into that state, with
   zero time and solver warm start, and compute the positions and contacts of the new state;
-- `_advance(actions)`: apply the PD targets [N, A] (float64) and advance K = `substeps` physics
+- `_advance(actions)`: apply the PD targets [N, A] (float64; a backend that computes on its device also
+  takes a tensor) and advance K = `substeps` physics
   steps, after which the positions, velocities and contacts of the new state are known;
 - `_arrays()`: the current `PhysicsArrays` (qpos, qvel, xpos, xquat, cvel, subtree_com; float64);
 - `_contact_falls()`: [N] whether a contact of the current state involves a geom of
@@ -289,10 +290,14 @@ class Simulator(abc.ABC):
         self._set_physics_state(env_ids, qpos, qvel, self.character.qpos_to_action(np.asarray(qpos)))
 
     # Step ------------------------------------------------------------------
-    def step(self, actions: np.ndarray) -> StepResult:
-        """Apply PD targets [N, 28] for one control step."""
-        actions = np.asarray(actions, dtype=np.float64)
-        if actions.shape != (self.num_envs, self.action_dim):
+    def step(self, actions: np.ndarray | torch.Tensor) -> StepResult:
+        """Apply PD targets [N, 28] for one control step: NumPy, or a tensor (a backend that computes on its
+        device takes it there as it is, so a policy's actions on that device do not cross to the host)."""
+        if isinstance(actions, torch.Tensor) and not self.computes_on_device:
+            actions = actions.detach().cpu().numpy()
+        if not isinstance(actions, torch.Tensor):
+            actions = np.asarray(actions, dtype=np.float64)
+        if tuple(actions.shape) != (self.num_envs, self.action_dim):
             raise ValueError(f"actions must be [{self.num_envs}, {self.action_dim}], got {list(actions.shape)}")
         self._advance(actions)
         self.steps += 1

@@ -8,16 +8,16 @@ failure, clip ends and switches, time limits, the step's result, save and restor
 shared `Simulator`'s, so it is the same code on both backends.
 
 A control step sets the controls of every world and advances them by K physics steps, split
-as BatchedSim splits it (`WarpPhysics.step`). NumPy in and out: what leaves the device after a
-step is what the step reports, computed on the device first. The body states [N, B, 13] (each
-body's linear velocity moved from the subtree's centre of mass to its origin, and packed) are
-made there in float32 and copied to the host, the one copy a step makes (`StepResult.packed`,
-which the trajectory stores; the head's rows give the tracking-failure test). The `KinState`
-(qpos and qvel copied, everything widened to float64, as BatchedSim's arrays are float64) and the
-state features s (computed on the device) are made only when `StepResult.kin` or `.state` is read;
-the recorders and policies beside this simulator read the state on the device instead
-(`StepResult.on_device`). MuJoCo Warp computes in float32, so all of them hold float32 values
-(tests/unit/test_warp_sim.py and docs/warp.md compare the two backends). A reset environment
+as BatchedSim splits it (`WarpPhysics.step`). The controls come as NumPy or, from a policy acting
+on the device, as a tensor taken there as it is. What leaves the device after a step is what the
+step reports, computed on the device first: the head's positions (N x 3, for the tracking-failure
+test) and the fall flags. The body states [N, B, 13] (each body's linear velocity moved from the
+subtree's centre of mass to its origin, and packed) are made there in float32; the recorders and
+policies beside this simulator read them, and the whole state, there (`StepResult.on_device`). Host
+copies are made only when read: the body states (`StepResult.body_states`), the `KinState` (qpos and
+qvel copied, everything widened to float64, as BatchedSim's arrays are float64) and the state
+features s (computed on the device). MuJoCo Warp computes in float32, so all of them hold float32
+values (tests/unit/test_warp_sim.py and docs/warp.md compare the two backends). A reset environment
 holds the float32 rounding of the reference state; the state features `reset` returns are the
 library's precomputed ones, as on MuJoCo C.
 
@@ -90,7 +90,7 @@ class WarpSim(Simulator):
         self.physics.set_ctrl(ctrl, env_ids)
         self.physics.set_state(env_ids, qpos, qvel)  # zero time and warm start, forward dynamics
 
-    def _advance(self, actions: np.ndarray) -> None:
+    def _advance(self, actions: np.ndarray | torch.Tensor) -> None:
         self.physics.set_ctrl(actions)
         self.physics.step(self.substeps)
         self._reset_unstable()
