@@ -104,15 +104,16 @@ class GoalSampler:
         self.ranges = _check_ranges(ranges)
         self.goals = np.zeros((num_envs, GOAL_DIMS[task]), np.float32)  # [M, G] world frame
 
-    def reset(self, sim: Simulator | None, bs: np.ndarray, ids: np.ndarray) -> None:
+    def reset(self, sim: Simulator | None, bs: np.ndarray | torch.Tensor, ids: np.ndarray) -> None:
         """New goals for environments `ids` that start episodes; bs [M, B, 13] are the body states of
-        all environments (after `sim.reset(ids)`), sim the `Simulator` (read for `vr` only)."""
+        all environments (after `sim.reset(ids)`; NumPy, or a tensor on a device, of which a point goal
+        copies the roots it is drawn around), sim the `Simulator` (read for `vr` only)."""
         ids = np.asarray(ids, dtype=int)
         if len(ids) == 0:
             return
         self.goals[ids] = vr_targets(sim, ids) if self.task == "vr" else self._draw(bs, ids)
 
-    def advance(self, sim: Simulator | None, bs: np.ndarray) -> np.ndarray:
+    def advance(self, sim: Simulator | None, bs: np.ndarray | torch.Tensor) -> np.ndarray:
         """After a control step: redraw each goal with probability change_rate / control_hz (vr: follow
         the reference instead); returns [M] bool, which goals changed (vr: none)."""
         if self.task == "vr":
@@ -124,7 +125,7 @@ class GoalSampler:
             self.goals[ids] = self._draw(bs, ids)
         return changed
 
-    def _draw(self, bs: np.ndarray, ids: np.ndarray) -> np.ndarray:
+    def _draw(self, bs: np.ndarray | torch.Tensor, ids: np.ndarray) -> np.ndarray:
         """Fresh goals [n, G] for environments `ids`."""
         n, r, uniform = len(ids), self.ranges, self.rng.uniform
         if self.task == "heading":
@@ -133,11 +134,14 @@ class GoalSampler:
             return np.stack((uniform(*r["heading"], n), uniform(*r["direction"], n), uniform(*r["speed"], n)), -1)
         if self.task == "height":
             return self.rng.choice(np.asarray(r["height"]), size=(n, 1))
-        bs = np.asarray(bs)  # point_goal
+        if not isinstance(bs, torch.Tensor):  # point_goal
+            bs = np.asarray(bs)
         if bs.shape[0] != self.num_envs:
             raise ValueError(f"bs must hold all {self.num_envs} environments, got {bs.shape[0]}")
+        root = bs[ids, 0, :2]
+        root = root.cpu().numpy() if isinstance(root, torch.Tensor) else root  # of a device's: these rows copied
         distance, bearing = uniform(*r["distance"], n), uniform(-math.pi, math.pi, n)
-        return bs[ids, 0, :2] + distance[:, None] * np.stack((np.cos(bearing), np.sin(bearing)), axis=-1)
+        return root + distance[:, None] * np.stack((np.cos(bearing), np.sin(bearing)), axis=-1)
 
     def state_dict(self) -> dict:
         return {"task": self.task, "goals": self.goals.copy(), "rng": self.rng.bit_generator.state}

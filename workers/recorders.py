@@ -44,7 +44,7 @@ class Recorder:
         raise NotImplementedError
 
 
-def _buffer(shape: tuple[int, ...], sim: Simulator) -> np.ndarray | torch.Tensor:
+def record_buffer(shape: tuple[int, ...], sim: Simulator) -> np.ndarray | torch.Tensor:
     """A float32 array for a collect's records: on the simulator's device beside one that computes there (copied
     to the host once, by `_host`, at `finish`), else NumPy."""
     if sim.computes_on_device:
@@ -52,7 +52,8 @@ def _buffer(shape: tuple[int, ...], sim: Simulator) -> np.ndarray | torch.Tensor
     return np.empty(shape, np.float32)
 
 
-def _host(values: np.ndarray | torch.Tensor) -> np.ndarray:
+def to_host(values: np.ndarray | torch.Tensor) -> np.ndarray:
+    """values as NumPy on the host (a tensor copied from its device)."""
     return values.cpu().numpy() if isinstance(values, torch.Tensor) else values
 
 
@@ -63,8 +64,8 @@ class AMPFeatures(Recorder):
         self.character = character
 
     def begin(self, steps: int, num_envs: int, sim: Simulator) -> None:
-        self.before = _buffer((steps, num_envs, amp_dim(self.character)), sim)
-        self.after = _buffer(tuple(self.before.shape), sim)
+        self.before = record_buffer((steps, num_envs, amp_dim(self.character)), sim)
+        self.after = record_buffer(tuple(self.before.shape), sim)
         self.current = self._of(sim.device_state()) if sim.computes_on_device else self._of_kin(sim.kin_state())
 
     def _of(self, state: DeviceState) -> torch.Tensor:
@@ -90,7 +91,7 @@ class AMPFeatures(Recorder):
             self.current[ids] = self._of_kin(sim.kin_state()[ids])
 
     def finish(self) -> dict[str, np.ndarray]:
-        return {"amp_obs": _host(self.before), "amp_next_obs": _host(self.after)}
+        return {"amp_obs": to_host(self.before), "amp_next_obs": to_host(self.after)}
 
 
 class ImitationReward(Recorder):
@@ -101,8 +102,8 @@ class ImitationReward(Recorder):
         self.weights = dict(DEFAULT_WEIGHTS if weights is None else weights)
 
     def begin(self, steps: int, num_envs: int, sim: Simulator) -> None:
-        self.reward = _buffer((steps, num_envs), sim)
-        self.terms = {k: _buffer((steps, num_envs), sim) for k in IMITATION_TERMS}
+        self.reward = record_buffer((steps, num_envs), sim)
+        self.terms = {k: record_buffer((steps, num_envs), sim) for k in IMITATION_TERMS}
 
     def record(self, t: int, sim: Simulator, result: StepResult) -> None:
         if result.on_device is not None:  # where the state is, against the reference looked up there
@@ -115,7 +116,7 @@ class ImitationReward(Recorder):
             self.terms[k][t] = v
 
     def finish(self) -> dict[str, np.ndarray]:
-        return {"reward": _host(self.reward), **{f"reward/{k}": _host(v) for k, v in self.terms.items()}}
+        return {"reward": to_host(self.reward), **{f"reward/{k}": to_host(v) for k, v in self.terms.items()}}
 
 
 class TrackingReward(Recorder):
@@ -147,7 +148,7 @@ class TrackingReward(Recorder):
         return device_features.tracking_reward(state, ref, weights, self.temperature)
 
     def begin(self, steps: int, num_envs: int, sim: Simulator) -> None:
-        self.reward = _buffer((steps, num_envs), sim)
+        self.reward = record_buffer((steps, num_envs), sim)
         self.current = self._of(sim)
 
     def record(self, t: int, sim: Simulator, result: StepResult) -> None:
@@ -167,4 +168,4 @@ class TrackingReward(Recorder):
     after_switch = after_reset  # the same state against its new reference
 
     def finish(self) -> dict[str, np.ndarray]:
-        return {"reward": _host(self.reward)}
+        return {"reward": to_host(self.reward)}

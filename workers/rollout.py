@@ -41,7 +41,7 @@ from workers.evaluation.controller import relative_position_error
 from workers.learners.base import Weights
 from workers.motion.library import MotionLibrary
 from workers.policies import Policy
-from workers.recorders import Recorder
+from workers.recorders import Recorder, to_host
 from workers.sim.env import SimConfig, Simulator, StepResult, make_sim
 from workers.types import Trajectory
 
@@ -174,7 +174,7 @@ class RolloutWorker:
                 switch_counts[0] += int(switched[t].sum())
         for r in self.recorders:
             extras.update(r.finish())
-        extras = {k: _host(v) for k, v in extras.items()}  # one copy
+        extras = {k: to_host(v) for k, v in extras.items()}  # one copy
         extras["truncated"] = truncated
         if self.switch_probability > 0:
             extras["switched"] = switched
@@ -188,7 +188,7 @@ class RolloutWorker:
             self._count_returns(extras["reward"], done)
         if actions is None:  # no steps
             actions = np.empty((0, m, sim.action_dim), np.float32)
-        states, next_states, actions = map(_host, (states, next_states, actions))
+        states, next_states, actions = map(to_host, (states, next_states, actions))
         self.steps_collected += steps * m
         self.collect_seconds += time.perf_counter() - t0
         return Trajectory(states, next_states, actions, done, clip_id, frame, self.version, self.worker_id, extras)
@@ -225,7 +225,7 @@ class RolloutWorker:
                 if not running.any():
                     break
                 a, _ = self.policy.act(sim, bs)
-                actions[t] = _host(a)
+                actions[t] = to_host(a)
                 result = sim.step(a)
                 bs = result.body_states
                 states[t + 1] = bs
@@ -361,8 +361,3 @@ def _rows_like(steps: int, v: np.ndarray | torch.Tensor, float32: bool = False) 
     if isinstance(v, torch.Tensor):
         return torch.empty((steps, *v.shape), dtype=torch.float32 if float32 else v.dtype, device=v.device)
     return np.empty((steps, *np.shape(v)), np.float32 if float32 else np.asarray(v).dtype)
-
-
-def _host(v: np.ndarray | torch.Tensor) -> np.ndarray:
-    """v as NumPy on the host (a tensor copied from its device)."""
-    return v.cpu().numpy() if isinstance(v, torch.Tensor) else v

@@ -31,7 +31,7 @@ from workers.models import body_state
 from workers.models.actor_critic import HelperLayout
 from workers.models.nets import gaussian
 from workers.policies import Policy
-from workers.recorders import Recorder
+from workers.recorders import Recorder, record_buffer, to_host
 from workers.sim.env import Simulator, StepResult
 
 
@@ -63,6 +63,8 @@ def skill_controller(skill: dict[str, Any], num_bodies: int, action_dim: int) ->
 
 
 class TaskRolloutPolicy(Policy, Recorder):
+    reads_device_states = True
+
     def __init__(self, num_bodies: int, action_dim: int, config: TaskConfig, control_hz: float, stochastic=True):
         self.num_bodies, self.action_dim = num_bodies, action_dim
         self.config, self.control_hz = config, control_hz
@@ -95,9 +97,14 @@ class TaskRolloutPolicy(Policy, Recorder):
         if self.module is not None:
             self.module.load_state_dict(weights.state)
 
-    @torch.no_grad()
     def actions(self, sim: Simulator, bs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(applied actions [M, A], the decoder's own actions [M, A]) for body states bs [M, B, 13]."""
+        applied, decoded = self._actions_on(sim, bs)
+        return applied.cpu().numpy(), decoded.cpu().numpy()
+
+    @torch.no_grad()
+    def _actions_on(self, sim: Simulator, bs: np.ndarray | torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """`actions` on the policy's device."""
         if self.module is None:
             raise RuntimeError("the task policy has no skill model yet (configure({'skill': ...}) first)")
         self._start_step(sim, bs)
@@ -108,44 +115,51 @@ class TaskRolloutPolicy(Policy, Recorder):
         if self.stochastic:
             eps = gaussian((len(bs), self.controller.latent_dim), self.generator, device=self.device)
         applied, decoded, _ = self.module.act(self.controller, s, obs, eps)
-        return applied.cpu().numpy(), decoded.cpu().numpy()
+        return applied, decoded
 
-    def _start_step(self, sim: Simulator, bs: np.ndarray) -> None:
+    def _start_step(self, sim: Simulator, bs: np.ndarray | torch.Tensor) -> None:
         """Before acting on body states bs: draw the goals not drawn yet and, for the progress reward, keep the
-        distance the step starts from, d_{t−1}."""
+        distance the step starts from, d_{t−1} (where bs is: on the host, or on the simulator's device)."""
         if len(self.unset):
             self.goals.reset(sim, bs, self.unset)
             self.unset = self.unset[:0]
         if self.config.reward == "progress":
-            goals = torch.from_numpy(self.goals.goals)
-            self.before = task_terms(self.config.task, torch.from_numpy(bs), goals)["distance"].numpy()
+            b = torch.as_tensor(bs)
+            goals = torch.as_tensor(self.goals.goals, device=b.device)
+            self.before = task_terms(self.config.task, b, goals)["distance"]
 
     def act(self, sim: Simulator, bs: np.ndarray) -> tuple[np.ndarray, dict[str, np.ndarray]]:
-        applied, decoded = self.actions(sim, bs)
-        deviation = np.abs(applied - decoded).mean(-1).astype(np.float32)
-        return applied, {"goal": self.goals.goals.copy(), "helper_deviation": deviation}
+        applied, decoded = self._actions_on(sim, bs)
+        extras = {"goal": self.goals.goals.copy(), "helper_deviation": _deviation(sim, applied, decoded)}
+        return self.output(sim, applied), extras
 
     # Recorder: the task reward of each step, for the goal the step was taken for ------------
+    # Beside a simulator that computes on its device, the reward and its terms are computed and kept there (the
+    # goals [M, G] are copied there each step); the worker copies them to the host once per collect.
     def begin(self, steps: int, num_envs: int, sim: Simulator) -> None:
-        self.reward = np.empty((steps, num_envs), np.float32)
-        self.terms: dict[str, np.ndarray] = {}
+        self.reward = record_buffer((steps, num_envs), sim)
+        self.terms: dict[str, np.ndarray | torch.Tensor] = {}
 
     def record(self, t: int, sim: Simulator, result: StepResult) -> None:
-        bs, goal = torch.from_numpy(result.body_states), torch.from_numpy(self.goals.goals)
-        terms = task_terms(self.config.task, bs, goal)
+        on_device = sim.computes_on_device
+        bs = result.on_device.body_states if on_device else torch.from_numpy(result.body_states)
+        terms = task_terms(self.config.task, bs, torch.as_tensor(self.goals.goals, device=bs.device))
         if self.config.reward == "progress":
-            self.reward[t] = self.before - terms["distance"].numpy()
+            self.reward[t] = self.before - terms["distance"]
         else:
-            self.reward[t] = np.exp(-sum(self.config.weights[k] * v for k, v in terms.items()).numpy())
+            loss = sum(self.config.weights[k] * v for k, v in terms.items())
+            self.reward[t] = torch.exp(-loss) if on_device else np.exp(-loss.numpy())
         for k, v in terms.items():
-            self.terms.setdefault(k, np.empty_like(self.reward))[t] = v.numpy()
-        self.goals.advance(sim, bs.numpy())
+            if k not in self.terms:
+                self.terms[k] = record_buffer(tuple(self.reward.shape), sim)
+            self.terms[k][t] = v
+        self.goals.advance(sim, bs if on_device else bs.numpy())
 
     def after_reset(self, sim: Simulator, ids: np.ndarray) -> None:
-        self.goals.reset(sim, sim.body_states(), ids)
+        self.goals.reset(sim, sim.device_body_states() if sim.computes_on_device else sim.body_states(), ids)
 
     def finish(self) -> dict[str, np.ndarray]:
-        return {"reward": self.reward, **{f"reward/{k}": v for k, v in self.terms.items()}}
+        return {"reward": to_host(self.reward), **{f"reward/{k}": to_host(v) for k, v in self.terms.items()}}
 
     def state_dict(self) -> dict[str, Any]:
         return {"goals": self.goals.state_dict(), "unset": self.unset.copy()}
@@ -184,6 +198,10 @@ class TaskPPOPolicy(TaskRolloutPolicy):
             self.module.load_state_dict(self.weights.state)
 
     def observe(self, sim: Simulator, bs: np.ndarray) -> np.ndarray:
+        return self._observation(sim, bs).cpu().numpy()
+
+    def _observation(self, sim: Simulator, bs: np.ndarray | torch.Tensor) -> torch.Tensor:
+        """The observation (s, g[, b]) on the policy's device."""
         self._start_step(sim, bs)
         b = self.tensor(bs)
         s = body_state.features(b)
@@ -192,29 +210,37 @@ class TaskPPOPolicy(TaskRolloutPolicy):
             parts.append(
                 self.controller.prior_dist(s).mean if self.prior_action else s.new_zeros(len(s), self.helper.latent_dim)
             )
-        return torch.cat(parts, dim=-1).cpu().numpy()
+        return torch.cat(parts, dim=-1)
 
     @torch.no_grad()
-    def decode(self, bs: np.ndarray, u: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
-        """(applied, decoder's own) actions [M, A] for the PPO action u [M, Z (+ A)]."""
+    def decode(self, bs: np.ndarray | torch.Tensor, u: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(applied, decoder's own) actions [M, A] for the PPO action u [M, Z (+ A)], on the policy's device."""
         s = body_state.features(self.tensor(bs))
         latent = self.controller.latent_dim
         z = u[:, :latent] + (self.controller.prior_dist(s).mean if self.prior_action else 0.0)
         decoded = self.controller.act(s, z)
         applied = decoded + self.config.sigma * torch.tanh(u[:, latent:]) if self.config.sigma > 0 else decoded
-        return applied.cpu().numpy(), decoded.cpu().numpy()
+        return applied, decoded
 
     @torch.no_grad()
-    def actions(self, sim: Simulator, bs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _actions_on(self, sim: Simulator, bs: np.ndarray | torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         if self.module is None:
             raise RuntimeError("the task policy has no skill model yet (configure({'skill': ...}) first)")
-        return self.decode(bs, self.module.mean(self.tensor(self.observe(sim, bs))))
+        return self.decode(bs, self.module.mean(self._observation(sim, bs)))
 
     @torch.no_grad()
     def act(self, sim: Simulator, bs: np.ndarray) -> tuple[np.ndarray, dict[str, np.ndarray]]:
-        obs = self.observe(sim, bs)
-        u, log_prob = self.module.act(self.tensor(obs), generator=self.generator)
+        obs = self._observation(sim, bs)
+        u, log_prob = self.module.act(obs, generator=self.generator)
         applied, decoded = self.decode(bs, u)
-        deviation = np.abs(applied - decoded).mean(-1).astype(np.float32)
-        extras = {"obs": obs, "action": u.cpu().numpy(), "log_prob": log_prob.cpu().numpy()}
-        return applied, {**extras, "goal": self.goals.goals.copy(), "helper_deviation": deviation}
+        extras = {k: self.output(sim, v) for k, v in (("obs", obs), ("action", u), ("log_prob", log_prob))}
+        extras |= {"goal": self.goals.goals.copy(), "helper_deviation": _deviation(sim, applied, decoded)}
+        return self.output(sim, applied), extras
+
+
+def _deviation(sim: Simulator, applied: torch.Tensor, decoded: torch.Tensor) -> np.ndarray | torch.Tensor:
+    """[M] float32 each environment's mean |applied − decoded| (radians): the helper's deviation from the decoder,
+    computed where the actions are kept (on the simulator's device beside one that computes there)."""
+    if sim.computes_on_device:
+        return (applied - decoded).abs().mean(-1)
+    return np.abs(applied.cpu().numpy() - decoded.cpu().numpy()).mean(-1).astype(np.float32)

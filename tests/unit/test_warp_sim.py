@@ -25,7 +25,7 @@ pytest.importorskip("mujoco_warp")
 
 from workers.body.features import amp_features, state_features  # noqa: E402
 from workers.learners.base import Weights  # noqa: E402
-from workers.learners.vae import build_controller  # noqa: E402
+from workers.learners.vae import VAEConfig, build_controller  # noqa: E402
 from workers.models import device_features  # noqa: E402
 from workers.motion.library import MotionLibrary  # noqa: E402
 from workers.sim.env import BatchedSim, SimConfig, make_sim  # noqa: E402
@@ -335,8 +335,8 @@ def test_the_rewards_recorded_on_the_device_are_numpys(warp, character, library)
 
 @pytest.mark.slow
 def test_every_kind_of_policy_collects_with_the_body_states_on_the_device(character, library):
-    """Beside MuJoCo Warp the worker keeps the body states on the device (policies that read them there get them
-    there, the task policies a host copy) and copies the trajectory's once: its arrays are NumPy, each step's
+    """Beside MuJoCo Warp the worker keeps the body states on the device (every policy here reads them there)
+    and copies the trajectory's once: its arrays are NumPy, each step's
     next states are the following step's states but where an episode ended, and a mimic observation made
     from the device's states is NumPy's of the stored ones."""
     from workers.learners.ppo import PPOConfig, build_actor_critic
@@ -407,6 +407,53 @@ def test_the_actions_stay_on_the_device_and_are_the_ones_applied(character, libr
         if name == "ppo":  # the applied PD targets are the sample plus the reference's next pose's
             base = library.pd_targets(traj.clip_id, traj.frame + 1)
             np.testing.assert_allclose(traj.actions - traj.extras["action"], base, rtol=0, atol=1e-5)
+
+
+@pytest.mark.slow
+def test_a_task_policy_acts_and_records_on_the_device(character, library, monkeypatch):
+    """The task policies read the body states on the device, act there (the simulator gets tensors) and compute
+    their rewards there: e^(-L_g) and the point goal's progress d_{t-1} - d_t equal NumPy's of the stored
+    states and goals; the goals are drawn around the roots, and a reset's goal around its new root."""
+    from workers.goals import DEFAULT_RANGES
+    from workers.learners.ppo import PPOConfig
+    from workers.learners.task import TaskConfig
+    from workers.losses.task import task_terms
+    from workers.rollout import RolloutWorker
+    from workers.task_policy import TaskPPOPolicy, TaskRolloutPolicy
+
+    b, a = character.num_bodies, character.num_actions
+    skill = VAEConfig(latent_dim=8, encoder_hidden=(32,), policy="mlp", policy_hidden=(32,))
+    torch.manual_seed(0)
+    payload = {"config": skill, "module": build_controller(b, a, skill).state_dict(), "prior_action": True}
+    exp = TaskConfig(task="point_goal", sigma=0.5, hidden=(16,), helper_hidden=(16,), change_rate=3.0)
+    progress = TaskConfig(task="point_goal", hidden=(16,), reward="progress", trainer="ppo", change_rate=3.0)
+    applied: list[object] = []
+    advance = WarpSim._advance
+    monkeypatch.setattr(WarpSim, "_advance", lambda self, x: applied.append(type(x)) or advance(self, x))
+    config = SimConfig(backend="warp", device=DEVICE, max_episode_steps=3)
+    monkeypatch.setitem(DEFAULT_RANGES, "distance", (1.0, 1.0))  # every point goal 1 m from its root when drawn
+    for policy in (TaskRolloutPolicy(b, a, exp, 30.0), TaskPPOPolicy(b, a, progress, 30.0, PPOConfig())):
+        applied.clear()
+        worker = RolloutWorker(character, library, 3, policy, config, seed=6)
+        policy.configure({"skill": payload})
+        traj = worker.collect(5)
+        assert applied == [torch.Tensor] * 5
+        goal = traj.extras["goal"]
+        distance = np.linalg.norm(goal - traj.states[:, :, 0, :2], axis=-1)
+        np.testing.assert_allclose(distance[[0, 3]], 1.0, rtol=0, atol=1e-5)  # at the start and the resets
+        assert np.abs(goal[3] - goal[2]).min() > 1e-2  # new goals around the new roots
+        terms = {
+            k: v.numpy()
+            for k, v in task_terms("point_goal", torch.from_numpy(traj.next_states), torch.from_numpy(goal)).items()
+        }
+        if policy.config.reward == "progress":
+            want = distance - terms["distance"]
+        else:
+            want = np.exp(-sum(policy.config.weights[k] * v for k, v in terms.items()))
+            assert traj.extras["helper_deviation"].dtype == np.float32 and traj.extras["helper_deviation"].min() > 0
+        assert np.abs(want).max() > 1e-3
+        np.testing.assert_allclose(traj.extras["reward"], want, rtol=0, atol=1e-5)
+        np.testing.assert_allclose(traj.extras["reward/distance"], terms["distance"], rtol=0, atol=1e-5)
 
 
 @pytest.mark.slow
