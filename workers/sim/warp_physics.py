@@ -197,6 +197,12 @@ class WarpPhysics:
         self._contact_world = wp.to_torch(self.d.contact.worldid)
         self._contact_geom = wp.to_torch(self.d.contact.geom)
         self._contact_type = wp.to_torch(self.d.contact.type)
+        # MuJoCo C's instability check and reset (`workers.sim.warp_kernels`), with its counters per world.
+        from workers.sim import warp_kernels
+
+        self._kernels = warp_kernels
+        self._qpos0 = wp.array(np.asarray(model.qpos0, np.float32), dtype=float, device=self.device)
+        self._unstable = wp.zeros((self.nworld, 3), dtype=int, device=self.device)
         self._sync()
 
     # State -----------------------------------------------------------------
@@ -330,12 +336,29 @@ class WarpPhysics:
     def _substeps(self, nstep: int) -> None:
         mjw = self._mjw
         mjw.step2(self.m, self.d)
+        self._reset_unstable(check_acc=True)
         for _ in range(nstep - 1):
             mjw.step(self.m, self.d)
+            self._reset_unstable(check_acc=True)
         mjw.step1(self.m, self.d)
 
     def _forward(self, _: object) -> None:
+        self._reset_unstable(check_acc=False)  # mj_forward checks the positions and velocities first
         self._mjw.forward(self.m, self.d)
+
+    def _reset_unstable(self, check_acc: bool) -> None:
+        """MuJoCo C's checks after a physics step's integration (`warp_kernels.reset_unstable`): the step's qacc
+        (mj_checkAcc, which MuJoCo C runs before integrating) and the new qpos and qvel (mj_checkPos and
+        mj_checkVel, which it runs at the start of the next step or forward)."""
+        d = self.d
+        arrays = (d.qpos, d.qvel, d.qacc, d.ctrl, d.act, d.qacc_warmstart, d.time, self._unstable)
+        self._wp.launch(self._kernels.reset_unstable, dim=self.nworld, inputs=[int(check_acc), self._qpos0, *arrays])
+
+    def unstable_counts(self) -> np.ndarray:
+        """[nworld, 3] int, columns (qacc, qpos, qvel): 1 for the check that failed at a world's last reset for
+        instability, 0 for the others (MuJoCo C's warning counters, which that reset clears first); all 0 for a
+        world never reset that way. Copied to the host."""
+        return self._unstable.numpy().copy()
 
     def _run(self, key: object, launches: Callable[[object], None]) -> None:
         """`launches(key)` on the device: replayed from the graph captured at its first call when `graphs` is

@@ -30,10 +30,13 @@ floor-distance pre-test is needed; N flags are copied to the host.
 What MuJoCo C does that MuJoCo Warp does not, and what this class does instead:
 - Unstable worlds. MuJoCo C resets an environment to the model's default pose, mid-step, when its
   positions, velocities or accelerations are non-finite or huge (> mjMAXVAL), and counts a warning
-  (mjWARN_BADQPOS, _BADQVEL, _BADQACC). MuJoCo Warp carries on with NaNs. `WarpSim` checks the three
-  after every control step, resets the worlds that fail to the model's qpos0 at rest (zero controls
-  and warm start) and counts the same warnings (`warning_counts`); the reset comes at the end of the
-  control step instead of within it.
+  (mjWARN_BADQPOS, _BADQVEL, _BADQACC). MuJoCo Warp carries on with NaNs (or, for a NaN in a
+  quaternion, with a normalised one and different physics). `WarpPhysics` runs MuJoCo C's checks and
+  reset in a kernel of its own after every physics step and before every forward pass
+  (`workers.sim.warp_kernels`), on the device and inside the step's graph, and `warning_counts` reads
+  its counters. The one difference: MuJoCo C checks the accelerations before it integrates and
+  integrates the reset world within the same physics step, where the kernel checks them after the
+  integration, so a world reset for its accelerations is one physics step (1/480 s) behind MuJoCo C's.
 - Rough terrain is refused (`terrain.kind` must be "flat"): MuJoCo Warp's height-field collider keeps
   at most 4 contacts per geom pair where MuJoCo C keeps up to 50, and `contact_capacity` has no bound
   for height fields, so the physics would not be MuJoCo C's.
@@ -56,11 +59,11 @@ from workers.sim.base import PhysicsArrays, Simulator
 from workers.sim.warp_physics import WarpPhysics
 from workers.types import KinState
 
-_UNSTABLE = {  # MuJoCo C's warning for a non-finite or huge value of each field
-    "qpos": mujoco.mjtWarning.mjWARN_BADQPOS,
-    "qvel": mujoco.mjtWarning.mjWARN_BADQVEL,
-    "qacc": mujoco.mjtWarning.mjWARN_BADQACC,
-}
+_UNSTABLE = (  # MuJoCo C's warnings for a non-finite or huge value, in the columns of `WarpPhysics.unstable_counts`
+    mujoco.mjtWarning.mjWARN_BADQACC,
+    mujoco.mjtWarning.mjWARN_BADQPOS,
+    mujoco.mjtWarning.mjWARN_BADQVEL,
+)
 _FULL = (mujoco.mjtWarning.mjWARN_CONTACTFULL, mujoco.mjtWarning.mjWARN_CNSTRFULL)
 
 
@@ -84,7 +87,6 @@ class WarpSim(Simulator):
         self.physics = WarpPhysics(self.model, self.num_envs, device=self.config.device)
         self._reference: DeviceReference | None = None  # the library on the device, made when first asked for
         self._fall_mask: torch.Tensor | None = None  # `_fall_geom` on the device
-        self._warnings = np.zeros((self.num_envs, int(mujoco.mjtWarning.mjNWARNING)), int)
 
     def _set_physics_state(self, env_ids: np.ndarray, qpos: np.ndarray, qvel: np.ndarray, ctrl: np.ndarray) -> None:
         self.physics.set_ctrl(ctrl, env_ids)
@@ -92,24 +94,7 @@ class WarpSim(Simulator):
 
     def _advance(self, actions: np.ndarray | torch.Tensor) -> None:
         self.physics.set_ctrl(actions)
-        self.physics.step(self.substeps)
-        self._reset_unstable()
-
-    def _reset_unstable(self) -> None:
-        """Reset worlds with a non-finite or huge qpos, qvel or qacc to qpos0 at rest, counting MuJoCo's warning."""
-        p = self.physics
-        fields = [getattr(p, name) for name in _UNSTABLE]
-        checks = [(torch.isfinite(v) & (v.abs() <= mujoco.mjMAXVAL)).all(dim=1) for v in fields]
-        ok = torch.stack(checks).cpu().numpy()  # [3, N], in _UNSTABLE's order: one device-to-host copy
-        if ok.all():
-            return
-        bad = {warning: ~ok[i] for i, warning in enumerate(_UNSTABLE.values())}
-        unstable = ~ok.all(axis=0)
-        for warning, rows in bad.items():
-            self._warnings[rows, int(warning)] += 1
-        ids = np.flatnonzero(unstable)
-        p.set_ctrl(np.zeros((len(ids), p.nu)), ids)
-        p.set_state(ids, np.repeat(self.model.qpos0[None], len(ids), 0))
+        self.physics.step(self.substeps)  # unstable worlds reset within it (`WarpPhysics`)
 
     def _arrays(self) -> PhysicsArrays:
         p = self.physics
@@ -188,15 +173,18 @@ class WarpSim(Simulator):
         self.physics.set_qacc_warmstart(np.asarray(values))
 
     def warning_counts(self, warning: mujoco.mjtWarning = mujoco.mjtWarning.mjWARN_BADQACC) -> np.ndarray:
-        """[N] how often each environment was found unstable with this warning since the simulator was made.
+        """[N] each environment's count of this MuJoCo warning, as MuJoCo C's `BatchedSim.warning_counts`.
 
-        MuJoCo Warp keeps no warning counters. mjWARN_BADQPOS, _BADQVEL and _BADQACC count this class's
-        own resets of unstable worlds (checked after each control step, see the module); mjWARN_CONTACTFULL
-        and mjWARN_CNSTRFULL are 1 for a world whose contacts or constraint rows overflowed MuJoCo Warp's
-        capacity since the simulator was made (`WarpPhysics.overflowed`), else 0; other warnings are 0."""
+        MuJoCo Warp keeps no warning counters. mjWARN_BADQACC, _BADQPOS and _BADQVEL are `WarpPhysics`'s
+        resets of unstable worlds (`WarpPhysics.unstable_counts`: as in MuJoCo C, 1 for the check that failed
+        at an environment's last such reset, which clears the other two); mjWARN_CONTACTFULL and
+        mjWARN_CNSTRFULL are 1 for a world whose contacts or constraint rows overflowed MuJoCo Warp's capacity
+        since the simulator was made (`WarpPhysics.overflowed`), else 0; other warnings are 0."""
         if warning in _FULL:
             return self.physics.overflowed().astype(int)
-        return self._warnings[:, int(warning)].copy()
+        if warning in _UNSTABLE:
+            return self.physics.unstable_counts()[:, _UNSTABLE.index(warning)].astype(int)
+        return np.zeros(self.num_envs, int)
 
     def get_data(self, i: int) -> mujoco.MjData:
         """A MuJoCo C MjData with environment i's state and computed quantities (a copy; float32 values widened)."""
