@@ -116,7 +116,7 @@ run_checks() {
     "$PY" -m orchestrator.bench sim --backend warp --device "$DEVICE" --worlds "${WORLDS:-$worlds}" \
         --out "$out/bench-sim.json" >"$out/bench-sim.txt" 2>&1 || status=1
     tail -n 12 "$out/bench-sim.txt"
-    "$PY" -m orchestrator.bench host --device "$DEVICE" --policies vae,vae-paper,tracker,actor-critic \
+    "$PY" -m orchestrator.bench host --device "$DEVICE" --policies vae,vae-paper,tracker,actor-critic,task \
         --envs "${HOST_ENVS:-1024,4096,16384}" --sim mujoco,warp \
         --out "$out/bench-host.json" >"$out/bench-host.txt" 2>&1 || status=1
     tail -n 26 "$out/bench-host.txt"

@@ -63,7 +63,7 @@ def main(argv: list[str] | None = None) -> int:
     pipeline.add_argument("--sim-device", default="cuda", help="the warp engine's device (cuda, cuda:N or cpu)")
     rollout = sub.add_parser("rollout", help="the rollout worker with each policy against raw mj_step, interleaved")
     rollout.add_argument(
-        "--policies", default="vae,actor-critic", help="comma-separated: vae,vae-paper,actor-critic,tracker"
+        "--policies", default="vae,actor-critic", help="comma-separated: vae,vae-paper,actor-critic,tracker,task"
     )
     rollout.add_argument("--envs", type=int, default=32, help="environments of the worker")
     rollout.add_argument("--seconds", type=float, default=10.0, help="interleaved time per policy and rate")
@@ -74,7 +74,9 @@ def main(argv: list[str] | None = None) -> int:
     rollout.add_argument("--threads", type=int, default=1, help="threads stepping the batched simulator")
     rollout.add_argument("--seed", type=int, default=0)
     host = sub.add_parser("host", help="a rollout worker's work besides the physics, per control step (no physics)")
-    host.add_argument("--policies", default="vae,tracker", help="comma-separated: vae,vae-paper,actor-critic,tracker")
+    host.add_argument(
+        "--policies", default="vae,tracker", help="comma-separated: vae,vae-paper,actor-critic,tracker,task"
+    )
     host.add_argument("--envs", default="1024,4096", help="comma-separated environment counts of the worker")
     host.add_argument("--steps", type=int, default=32, help="timed control steps per measurement")
     host.add_argument("--collect", type=int, default=8, help="control steps per collect call")

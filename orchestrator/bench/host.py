@@ -12,9 +12,10 @@ collect faster than `envs / host seconds per step` control steps a second, howev
 GPU steps the physics.
 
 With `--sim warp` the frozen simulator is MuJoCo Warp's (`FrozenWarpSim`, on `--device` with
-the policy): the body states, the KinState and s are then made on the device and copied once a
-step, as a worker on MuJoCo Warp does; with `--sim mujoco` (the default) it is MuJoCo C's, all
-on the host.
+the policy): the body states, features, rewards, reference lookups and actions then stay on the
+device and the trajectory is copied once per collect, as a worker on MuJoCo Warp does (what the
+host still does is the reference bookkeeping, terminations and resets); with `--sim mujoco` (the
+default) it is MuJoCo C's, all on the host.
 
 The networks' time is measured with hooks around the policy's top-level submodules (nested
 calls counted once), with the device synchronised at both ends on a GPU.
@@ -36,7 +37,7 @@ from workers.recorders import TrackingReward
 from workers.rollout import RolloutWorker
 from workers.sim.env import BatchedSim, SimConfig
 
-POLICIES = ("vae", "vae-paper", "actor-critic", "tracker")
+POLICIES = ("vae", "vae-paper", "actor-critic", "tracker", "task")
 SIMS = ("mujoco", "warp")
 
 
@@ -96,7 +97,7 @@ def frozen_worker(
     kind: str, character, library, envs: int, device: str, seed: int, sim: str = "mujoco"
 ) -> RolloutWorker:
     worker = make_worker(kind, character, library, 1, SimConfig(), seed)  # the policy and recorders of `kind`
-    recorders = worker.recorders
+    recorders = [r for r in worker.recorders if r is not worker.policy]  # a task policy records itself
     if kind.startswith("vae"):  # ControlVAE's worker records its tracking reward (orchestrator/algos/controlvae.py)
         weights = state_weight_vector(character.num_bodies, VAEConfig().state_weights).numpy()
         recorders = [TrackingReward(weights)]

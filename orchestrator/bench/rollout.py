@@ -9,7 +9,9 @@ records included), with:
 - `actor-critic`: the PPO actor-critic on the state (`GaussianPolicy`, AMP's
   policy input), policy and value MLPs of AMP's (1024, 512), with AMP's Φ(s) recorded;
 - `tracker`: the tracking expert's residual actor-critic on s and s̃_{t+1}, with the
-  imitation reward recorded, at its laptop sizes (512, 256).
+  imitation reward recorded, at its laptop sizes (512, 256);
+- `task`: the point-goal task policy as PPO trains it (`TaskPPOPolicy`, σ = 0.5: the helper branch)
+  on a frozen skill decoder of the laptop VAE's sizes, recording its task reward.
 
 Raw and worker blocks alternate (`orchestrator.bench.sim.interleaved`): the raw side
 replays the worker's own actions on one `MjData`, and the ratio is the median over
@@ -27,14 +29,17 @@ import torch
 
 from orchestrator.bench.sim import RawStepper, interleaved, walk_run_setup
 from workers.body.features import StateLayout
-from workers.learners.vae import VAEConfig
+from workers.learners.ppo import PPOConfig
+from workers.learners.task import TaskConfig
+from workers.learners.vae import VAEConfig, build_controller
 from workers.models.actor_critic import ActorCritic
 from workers.policies import GaussianPolicy, VAEPolicy
 from workers.recorders import AMPFeatures, ImitationReward
 from workers.rollout import RolloutWorker
 from workers.sim.env import SimConfig
+from workers.task_policy import TaskPPOPolicy
 
-POLICIES = ("vae", "vae-paper", "actor-critic", "tracker")
+POLICIES = ("vae", "vae-paper", "actor-critic", "tracker", "task")
 LAPTOP_VAE = VAEConfig(latent_dim=32, encoder_hidden=(256, 256), policy="mlp", policy_hidden=(256, 256))
 
 
@@ -53,9 +58,21 @@ def make_worker(kind: str, character, library, envs: int, config: SimConfig, see
         net = ActorCritic(2 * s, a, action_std=0.05, policy_hidden=(512, 256), value_hidden=(512, 256))
         policy = GaussianPolicy(net, obs="imitation", residual=True)
         recorders = [ImitationReward(character)]
+    elif kind == "task":
+        policy = _task_policy(b, a, config.control_hz)
     else:
         raise ValueError(f"unknown policy {kind!r}; expected one of {POLICIES}")
     return RolloutWorker(character, library, envs, policy, config, seed=seed, recorders=recorders)
+
+
+def _task_policy(num_bodies: int, action_dim: int, control_hz: float) -> TaskPPOPolicy:
+    """The point-goal task policy under PPO with the helper branch, on a skill decoder of random weights."""
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(0)
+        decoder = build_controller(num_bodies, action_dim, LAPTOP_VAE).state_dict()
+    policy = TaskPPOPolicy(num_bodies, action_dim, TaskConfig(task="point_goal", sigma=0.5), control_hz, PPOConfig())
+    policy.configure({"skill": {"config": LAPTOP_VAE, "module": decoder, "prior_action": True}})
+    return policy
 
 
 class WorkerRunner:

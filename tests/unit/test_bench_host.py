@@ -38,6 +38,18 @@ def test_the_networks_time_is_part_of_the_step_and_counted_once(setup):
     assert not any(m._forward_hooks or m._forward_pre_hooks for m in worker.policy.controller.modules())
 
 
+def test_a_task_worker_records_its_reward_once(setup):
+    """The task policy records its own reward (it is a recorder): the frozen worker keeps it once, so the reward
+    of each step is written once, and the goals are drawn around the characters' roots."""
+    character, library = setup
+    worker = host.frozen_worker("task", character, library, 3, "cpu", seed=0)
+    assert worker.recorders == [worker.policy]
+    traj = worker.collect(2)
+    distance = np.linalg.norm(traj.extras["goal"][0] - traj.states[0, :, 0, :2], axis=-1)
+    assert ((distance >= 1.0 - 1e-5) & (distance <= 5.0 + 1e-5)).all()  # the point goal's 1-5 m
+    assert traj.extras["reward"].shape == (2, 3) and np.isfinite(traj.extras["obs"]).all()
+
+
 def test_nested_calls_are_timed_once(monkeypatch):
     ticks = iter(range(100))
     monkeypatch.setattr(host.time, "perf_counter", lambda: float(next(ticks)))  # each reading one second later
