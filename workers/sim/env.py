@@ -175,10 +175,13 @@ class BatchedSim(Simulator):
         self._warmstart[:] = values
 
     def warning_counts(self, warning: mujoco.mjtWarning = mujoco.mjtWarning.mjWARN_BADQACC) -> np.ndarray:
-        """[N] how often each environment raised this MuJoCo warning since the simulator was made.
+        """[N] how often each environment raised this MuJoCo warning since the simulator was made or MuJoCo last
+        reset it for instability.
 
-        mjWARN_BADQACC is the instability warning: non-finite or huge accelerations, after
-        which MuJoCo resets the environment to the model's default pose.
+        mjWARN_BADQACC, _BADQPOS and _BADQVEL are the instability warnings: non-finite or huge accelerations,
+        positions or velocities, after which MuJoCo resets the environment to the model's default pose with
+        `mj_resetData`, which clears its warning counters before counting the one that fired: each of the
+        three is therefore 1 after such a reset, however many came before (docs/warp.md, "Unstable worlds").
         """
         return self._batch.warning[:, int(warning), 1].astype(int)
 
