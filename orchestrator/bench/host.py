@@ -17,7 +17,7 @@ device and the trajectory is copied once per collect, as a worker on MuJoCo Warp
 host still does is the reference bookkeeping, terminations and resets); with `--sim mujoco` (the
 default) it is MuJoCo C's, all on the host.
 
-The networks' time is measured with hooks around the policy's top-level submodules (nested
+The networks' time is measured with hooks around the modules of the policy's networks (nested
 calls counted once), with the device synchronised at both ends on a GPU.
 """
 
@@ -52,15 +52,19 @@ class FrozenSim(BatchedSim):
 
 
 class NetworkClock:
-    """Seconds spent inside a policy's networks: forward hooks on their direct submodules, outermost call only."""
+    """Seconds spent inside a policy's networks: forward hooks on every module in them (the containers, which are
+    never called, aside), the outermost call only. Policies call their networks' methods (`act`, `encode`), not
+    their forward, and those reach modules at any depth (a ModuleDict's MLPs, say)."""
 
     def __init__(self, modules: list[torch.nn.Module], device: torch.device):
         self.seconds, self.depth, self.device, self._start = 0.0, 0, device, 0.0
         self.handles = []
+        containers = (torch.nn.ModuleDict, torch.nn.ModuleList)
         for net in modules:
-            for child in net.children():
-                self.handles.append(child.register_forward_pre_hook(self._enter))
-                self.handles.append(child.register_forward_hook(self._leave))
+            for module in net.modules():
+                if not isinstance(module, containers):
+                    self.handles.append(module.register_forward_pre_hook(self._enter))
+                    self.handles.append(module.register_forward_hook(self._leave))
 
     def _sync(self) -> None:
         if self.device.type == "cuda":

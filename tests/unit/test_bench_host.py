@@ -59,6 +59,18 @@ def test_nested_calls_are_timed_once(monkeypatch):
     assert clock.depth == 0 and clock.seconds == 1.0  # the outermost call's two readings, nothing nested
 
 
+def test_modules_reached_below_the_networks_children_are_timed(monkeypatch):
+    """A task policy's actor-critic keeps its MLPs in a ModuleDict and calls them from `act`: each is timed."""
+    from workers.models.actor_critic import HelperActorCritic
+
+    net = HelperActorCritic(5, 2, 3, 4, 0.1, policy_hidden=(8,), value_hidden=(8,), helper_hidden=(8,))
+    ticks = iter(range(100))
+    clock = host.NetworkClock([net], torch.device("cpu"))
+    monkeypatch.setattr(host.time, "perf_counter", lambda: float(next(ticks)))
+    net.act(torch.zeros(6, 5 + 2 + 3))
+    assert clock.depth == 0 and clock.seconds == 3.0  # the normaliser, μ_g's MLP and the helper's: one second each
+
+
 def test_the_table_names_every_policy_and_size(capsys):
     assert main(["host", "--policies", "tracker", "--envs", "2,3", "--steps", "2", "--collect", "1"]) == 0
     table = capsys.readouterr().out
