@@ -108,7 +108,8 @@ run_checks() {
     "$PY" -c "import warp, mujoco_warp, torch; warp.init(); print('warp', warp.__version__, 'torch', torch.__version__)"
     status=0
     "$PY" -m pytest -q -m "" -p no:cacheprovider tests/unit/test_warp_physics.py tests/unit/test_warp_sim.py \
-        tests/unit/test_warp_tracking.py tests/unit/test_policy_device.py >"$out/tests.txt" 2>&1 || status=1
+        tests/unit/test_warp_worker.py tests/unit/test_warp_tracking.py tests/unit/test_policy_device.py \
+        >"$out/tests.txt" 2>&1 || status=1
     tail -n 15 "$out/tests.txt"
     "$PY" scripts/warp_equivalence.py --device "$DEVICE" --control-steps 300 >"$out/equivalence.txt" 2>&1 || status=1
     tail -n 20 "$out/equivalence.txt"
