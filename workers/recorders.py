@@ -46,7 +46,7 @@ class Recorder:
 
 def record_buffer(shape: tuple[int, ...], sim: Simulator) -> np.ndarray | torch.Tensor:
     """A float32 array for a collect's records: on the simulator's device beside one that computes there (copied
-    to the host once, by `_host`, at `finish`), else NumPy."""
+    to the host once, by `to_host`, at `finish`), else NumPy."""
     if sim.computes_on_device:
         return torch.empty(shape, device=sim.torch_device)
     return np.empty(shape, np.float32)

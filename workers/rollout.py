@@ -76,8 +76,11 @@ class RolloutWorker:
         policy.bind(num_envs, self.rng, self.generator)
         # Inference runs where the simulator's worlds are (a GPU with MuJoCo Warp on CUDA, else the CPU).
         policy.to(self.sim.config.device)
-        # A policy that records too (the task policy: its goals and rewards) records after the others.
-        self.recorders = list(recorders) + ([policy] if isinstance(policy, Recorder) else [])
+        # A policy that records too (the task policy: its goals and rewards) records after the others, once: also
+        # when it is among the recorders given (another worker's, which `bench host` passes on).
+        self.recorders = list(recorders)
+        if isinstance(policy, Recorder) and policy not in self.recorders:
+            self.recorders.append(policy)
         # Counters for `stats`.
         self.steps_collected = 0
         self.episodes = 0

@@ -101,7 +101,7 @@ def frozen_worker(
     kind: str, character, library, envs: int, device: str, seed: int, sim: str = "mujoco"
 ) -> RolloutWorker:
     worker = make_worker(kind, character, library, 1, SimConfig(), seed)  # the policy and recorders of `kind`
-    recorders = [r for r in worker.recorders if r is not worker.policy]  # a task policy records itself
+    recorders = worker.recorders
     if kind.startswith("vae"):  # ControlVAE's worker records its tracking reward (orchestrator/algos/controlvae.py)
         weights = state_weight_vector(character.num_bodies, VAEConfig().state_weights).numpy()
         recorders = [TrackingReward(weights)]

@@ -20,6 +20,7 @@ MAXVAL = wp.constant(float(mujoco.mjMAXVAL))
 # Columns of the counters, in the order MuJoCo C meets the checks within a physics step that the kernel
 # follows: the accelerations of the step just taken, then the new positions and velocities.
 QACC, QPOS, QVEL = 0, 1, 2
+FIELDS = ("qacc", "qpos", "qvel")  # the counters' columns by name
 
 
 @wp.func

@@ -354,11 +354,12 @@ class WarpPhysics:
         arrays = (d.qpos, d.qvel, d.qacc, d.ctrl, d.act, d.qacc_warmstart, d.time, self._unstable)
         self._wp.launch(self._kernels.reset_unstable, dim=self.nworld, inputs=[int(check_acc), self._qpos0, *arrays])
 
-    def unstable_counts(self) -> np.ndarray:
-        """[nworld, 3] int, columns (qacc, qpos, qvel): 1 for the check that failed at a world's last reset for
+    def unstable_counts(self) -> dict[str, np.ndarray]:
+        """{"qacc" | "qpos" | "qvel": [nworld] int}: 1 for the check that failed at a world's last reset for
         instability, 0 for the others (MuJoCo C's warning counters, which that reset clears first); all 0 for a
         world never reset that way. Copied to the host."""
-        return self._unstable.numpy().copy()
+        counts = self._unstable.numpy()
+        return {name: counts[:, i].copy() for i, name in enumerate(self._kernels.FIELDS)}
 
     def _run(self, key: object, launches: Callable[[object], None]) -> None:
         """`launches(key)` on the device: replayed from the graph captured at its first call when `graphs` is

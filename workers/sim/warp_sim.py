@@ -59,11 +59,11 @@ from workers.sim.base import PhysicsArrays, Simulator
 from workers.sim.warp_physics import WarpPhysics
 from workers.types import KinState
 
-_UNSTABLE = (  # MuJoCo C's warnings for a non-finite or huge value, in the columns of `WarpPhysics.unstable_counts`
-    mujoco.mjtWarning.mjWARN_BADQACC,
-    mujoco.mjtWarning.mjWARN_BADQPOS,
-    mujoco.mjtWarning.mjWARN_BADQVEL,
-)
+_UNSTABLE = {  # MuJoCo C's warning for a non-finite or huge value of each field (`WarpPhysics.unstable_counts`)
+    mujoco.mjtWarning.mjWARN_BADQACC: "qacc",
+    mujoco.mjtWarning.mjWARN_BADQPOS: "qpos",
+    mujoco.mjtWarning.mjWARN_BADQVEL: "qvel",
+}
 _FULL = (mujoco.mjtWarning.mjWARN_CONTACTFULL, mujoco.mjtWarning.mjWARN_CNSTRFULL)
 
 
@@ -183,7 +183,7 @@ class WarpSim(Simulator):
         if warning in _FULL:
             return self.physics.overflowed().astype(int)
         if warning in _UNSTABLE:
-            return self.physics.unstable_counts()[:, _UNSTABLE.index(warning)].astype(int)
+            return self.physics.unstable_counts()[_UNSTABLE[warning]].astype(int)
         return np.zeros(self.num_envs, int)
 
     def get_data(self, i: int) -> mujoco.MjData:
