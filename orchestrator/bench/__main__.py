@@ -26,7 +26,7 @@ def main(argv: list[str] | None = None) -> int:
     sim.add_argument("--cpu-threads", type=int, help="warp: threads of the MuJoCo C side (default: every core)")
     learners = sub.add_parser("learners", help="each learner's update(batch): updates/s and share of matmul peak")
     learners.add_argument("--learners", help="comma-separated subset of world_model,vae,discriminator,ppo,task")
-    learners.add_argument("--sizes", help="comma-separated subset of paper,small")
+    learners.add_argument("--sizes", help="comma-separated subset of paper,laptop,small")
     learners.add_argument("--seconds", type=float, default=5.0, help="time budget of each measurement")
     learners.add_argument("--threads", type=int, help="torch.set_num_threads (default: torch's default)")
     learners.add_argument("--seed", type=int, default=0)

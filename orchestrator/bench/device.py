@@ -6,8 +6,8 @@
 It needs torch (with CUDA), numpy and mujoco only: nothing on its import path reads ray, mlflow or hydra
 (`tests/unit/test_bench_device.py` checks that). It prints, for each device:
 
-- `bench learners` at both sizes (updates/s, GFLOP/s, share of the update's own matmuls and of the
-  device's dense-GEMM peak);
+- `bench learners` at every size: paper, laptop, small (updates/s, GFLOP/s, share of the update's own
+  matmuls and of the device's dense-GEMM peak);
 - one paper-size ControlVAE iteration's learner updates: `algo_scale/controlvae_paper.yaml` collects 2,048
   states an iteration and trains the world model 8 times on 512 windows of 8 steps and the VAE 8 times on
   512 rollouts of 24 steps (replay ratios 16 and 48), so an iteration's updates are 8 + 8 of

@@ -39,8 +39,9 @@ stays eager.
 batches start on the CPU, as a replay buffer hands them over, and each update copies
 them (pinned, non-blocking); on a GPU every timing synchronises the device first.
 
-Sizes ("paper" are the configs' defaults; "small" halves the widths or more and
-uses batches of 64 and shorter rollouts):
+Sizes ("paper" are the configs' defaults; "laptop" the learners of each method's laptop scale,
+`conf/algo_scale/*_laptop.yaml`, so that the default run's own learners are measured; "small" halves
+the widths or more and uses batches of 64 and shorter rollouts):
 
   learner        paper                                          small
   world_model    MLP 4x512, T_w=8, N_w=512                      4x256, T_w=4, N=64
@@ -48,8 +49,14 @@ uses batches of 64 and shorter rollouts):
                  (ControlVAE objective through a 4x512 world model; the small one's is 4x256)
   discriminator  (1024, 512), 256 data + 256 policy             (256, 128), 64 + 64
   ppo            policy and value (1024, 512), minibatch 256    (256, 128), minibatch 64
-  task           heading, (256, 128), T=16, N=256 on the paper  (128, 64), T=8, N=64 on the small
+  task           heading, 3x256, T=16, N=256 on the paper       (128, 64), T=8, N=64 on the small
                  VAE controller and world model                 controller and world model
+
+  laptop         the default run (ControlVAE): world model MLP 3x256, T_w=8, N_w=128; VAE with an MLP
+                 policy 2x256, enc 2x256, z 32, T=8, N=64 (Adam) through that world model; AMP's
+                 discriminator (512, 256) and PPO (512, 256), minibatch 256; the task policy at the paper's
+                 widths, N=128, on the laptop controller (tests/unit/test_bench_learners.py checks these
+                 against the composed configs)
 
 The humanoid has 15 bodies and 28 actions; AMP's Φ(s) has 105 features
 (`workers.body.features.amp_dim`), which is also the observation size used for PPO.
@@ -79,7 +86,7 @@ from workers.models.world_model import WorldModel
 
 NUM_BODIES, ACTION_DIM, AMP_OBS_DIM, DT = 15, 28, 105, 1.0 / 30.0
 LEARNERS = ("world_model", "vae", "discriminator", "ppo", "task")
-SIZES = ("paper", "small")
+SIZES = ("paper", "laptop", "small")
 ALIASES = {"disc": "discriminator", "wm": "world_model"}
 MIN_REPEATS = 3
 MAX_REPEATS = 200
@@ -115,35 +122,83 @@ def frozen_world_model(hidden: tuple[int, ...], gen: torch.Generator) -> WorldMo
     return model
 
 
-def _paper(size: str) -> bool:
+def _size(size: str, **configs: Any) -> Any:
+    """The config of `size` among `configs` (paper, laptop, small)."""
     if size not in SIZES:
         raise ValueError(f"unknown size {size!r}; expected one of {SIZES}")
-    return size == "paper"
+    return configs[size]
+
+
+# The laptop scale's learners (conf/algo_scale/*_laptop.yaml; a test compares them with the composed configs)
+def world_model_config(size: str) -> WorldModelConfig:
+    return _size(
+        size,
+        paper=WorldModelConfig(),
+        laptop=WorldModelConfig(hidden=(256,) * 3, lr=1e-3, batch_size=128),
+        small=WorldModelConfig(hidden=(256,) * 4, rollout_steps=4, batch_size=64),
+    )
+
+
+def discriminator_config(size: str) -> DiscriminatorConfig:
+    return _size(
+        size,
+        paper=DiscriminatorConfig(),
+        laptop=DiscriminatorConfig(hidden=(512, 256)),
+        small=DiscriminatorConfig(hidden=(256, 128), batch_size=64),
+    )
+
+
+def ppo_config(size: str) -> PPOConfig:
+    laptop = PPOConfig(
+        policy_hidden=(512, 256),
+        value_hidden=(512, 256),
+        optimizer="adam",
+        policy_lr=1e-4,
+        value_lr=1e-3,
+        clip=0.2,
+        epochs=5,
+    )
+    small = PPOConfig(policy_hidden=(256, 128), value_hidden=(256, 128), minibatch_size=64)
+    return _size(size, paper=PPOConfig(), laptop=laptop, small=small)
+
+
+def task_config(size: str) -> TaskConfig:
+    small = TaskConfig(hidden=(128, 64), helper_hidden=(64, 64), rollout_steps=8, batch_size=64)
+    return _size(size, paper=TaskConfig(), laptop=TaskConfig(batch_size=128), small=small)
 
 
 # One builder per learner ----------------------------------------------------------
 def build_world_model(size: str, gen: torch.Generator, device: torch.device = CPU) -> Case:
-    c = WorldModelConfig() if _paper(size) else WorldModelConfig(hidden=(256,) * 4, rollout_steps=4, batch_size=64)
+    c = world_model_config(size)
     n, t = c.batch_size, c.rollout_steps
     batch = WorldModelBatch(body_states(gen, n, t + 1), actions(gen, n, t))
     learner = WorldModelLearner(NUM_BODIES, ACTION_DIM, DT, c, device)
     return Case(learner, batch, f"MLP {_dims(c.hidden)}, T_w={t}, N_w={n}")
 
 
-def _vae_config(size: str) -> VAEConfig:
-    if _paper(size):
-        return VAEConfig()
-    return VAEConfig(
+def vae_config(size: str) -> VAEConfig:
+    laptop = VAEConfig(
+        latent_dim=32,
+        encoder_hidden=(256, 256),
+        policy="mlp",
+        policy_hidden=(256, 256),
+        optimizer="adam",
+        lr=1e-4,
+        batch_size=64,
+        rollout_steps=8,
+    )
+    small = VAEConfig(
         latent_dim=32, encoder_hidden=(256, 256), policy_hidden=(256, 256, 256), rollout_steps=8, batch_size=64
     )
+    return _size(size, paper=VAEConfig(), laptop=laptop, small=small)
 
 
 def _wm_hidden(size: str) -> tuple[int, ...]:
-    return WorldModelConfig().hidden if _paper(size) else (256,) * 4
+    return world_model_config(size).hidden
 
 
 def build_vae(size: str, gen: torch.Generator, device: torch.device = CPU) -> Case:
-    c = _vae_config(size)
+    c = vae_config(size)
     n, t = c.batch_size, c.rollout_steps
     learner = VAELearner(NUM_BODIES, ACTION_DIM, c, frozen_world_model(_wm_hidden(size), gen), device=device)
     batch = VAEBatch(body_states(gen, n, t + 1), reference=body_states(gen, n, t + 1))
@@ -152,7 +207,7 @@ def build_vae(size: str, gen: torch.Generator, device: torch.device = CPU) -> Ca
 
 
 def build_discriminator(size: str, gen: torch.Generator, device: torch.device = CPU) -> Case:
-    c = DiscriminatorConfig() if _paper(size) else DiscriminatorConfig(hidden=(256, 128), batch_size=64)
+    c = discriminator_config(size)
     n, d = c.batch_size, 2 * AMP_OBS_DIM
     batch = DiscriminatorBatch(torch.randn(n, d, generator=gen), torch.randn(n, d, generator=gen))
     learner = DiscriminatorLearner(AMP_OBS_DIM, c, device=device)
@@ -160,10 +215,7 @@ def build_discriminator(size: str, gen: torch.Generator, device: torch.device = 
 
 
 def build_ppo(size: str, gen: torch.Generator, device: torch.device = CPU) -> Case:
-    if _paper(size):
-        c = PPOConfig()
-    else:
-        c = PPOConfig(policy_hidden=(256, 128), value_hidden=(256, 128), minibatch_size=64)
+    c = ppo_config(size)
     n = c.minibatch_size
     batch = PPOBatch(
         obs=torch.randn(n, AMP_OBS_DIM, generator=gen),
@@ -180,11 +232,8 @@ def build_ppo(size: str, gen: torch.Generator, device: torch.device = CPU) -> Ca
 
 
 def build_task(size: str, gen: torch.Generator, device: torch.device = CPU) -> Case:
-    if _paper(size):
-        c = TaskConfig()
-    else:
-        c = TaskConfig(hidden=(128, 64), helper_hidden=(64, 64), rollout_steps=8, batch_size=64)
-    v = _vae_config(size)
+    c = task_config(size)
+    v = vae_config(size)
     controller = build_controller(NUM_BODIES, ACTION_DIM, v)
     learner = TaskLearner(controller, frozen_world_model(_wm_hidden(size), gen), ACTION_DIM, c, device=device)
     n, t = c.batch_size, c.rollout_steps

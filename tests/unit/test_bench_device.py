@@ -51,7 +51,7 @@ def test_no_gpu_is_one_line():
 
 def test_an_unknown_compile_size_is_one_line():
     line = _refused("--compile-sizes", "huge")
-    assert line.endswith("--compile-sizes: unknown size huge; expected some of paper, small")
+    assert line.endswith("--compile-sizes: unknown size huge; expected some of paper, laptop, small")
 
 
 def test_a_paper_iteration_times_eight_updates_of_each_learner(monkeypatch):

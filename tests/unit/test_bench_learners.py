@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from dataclasses import fields
 
 import pytest
 import torch
@@ -11,6 +12,7 @@ from torch.utils.flop_counter import FlopCounterMode
 from orchestrator.bench import learners as bench
 from orchestrator.bench import matmuls
 from orchestrator.bench.__main__ import main
+from orchestrator.compose import compose, validate
 
 
 def test_bench_learners_json(tmp_path, capsys):
@@ -62,3 +64,33 @@ def test_compiled_rows_time_an_eager_twin_in_the_same_rounds():
     assert ppo["compiled_over_eager"] == pytest.approx(ppo["updates_per_s"] / ppo["eager_updates_per_s"])
     assert disc["compiled"] is None  # its gradient penalty stays eager
     assert "x eager" in bench.format_table(r).splitlines()[2]
+
+
+def _fields(config) -> dict:
+    """A config's fields, lists read as tuples (YAML gives lists where the dataclasses default to tuples)."""
+    return {f.name: tuple(v) if isinstance(v := getattr(config, f.name), list) else v for f in fields(config)}
+
+
+@pytest.mark.parametrize(
+    ("algo", "section", "config"),
+    [
+        ("controlvae", "world_model", bench.world_model_config),
+        ("controlvae", "vae", bench.vae_config),
+        ("amp", "discriminator", bench.discriminator_config),
+        ("amp", "ppo", bench.ppo_config),
+        ("task", "task", bench.task_config),
+    ],
+)
+def test_the_laptop_size_is_the_laptop_scale_of_its_method(algo, section, config):
+    """`--sizes laptop` measures the learners the default run (and AMP's and the task's laptop runs) train:
+    every field as the composed config has it, so that a change to conf/algo_scale/*_laptop.yaml fails here."""
+    cfg = validate(compose(["run_dir=unused", f"algo={algo}"]))
+    assert _fields(config("laptop")) == _fields(getattr(cfg.algo, section))
+    assert _fields(config("laptop")) != _fields(config("small"))  # a size of its own
+
+
+def test_the_laptop_vae_learns_through_the_laptop_world_model():
+    case = bench.BUILDERS["vae"]("laptop", torch.Generator().manual_seed(0))
+    hidden = [m.out_features for m in case.learner.world_model.modules() if isinstance(m, torch.nn.Linear)][:-1]
+    assert tuple(hidden) == bench.world_model_config("laptop").hidden == (256, 256, 256)
+    assert "MLP 2x256" in case.description
