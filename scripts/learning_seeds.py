@@ -1,0 +1,158 @@
+"""The learning test's protocol over seeds, for two settings: is one of them worse per sample?
+
+    python scripts/learning_seeds.py [--seeds 0-7] [--modes eager,default] [--starts 16] [--json FILE]
+
+For each seed and each `runtime.learner_compile` mode (eager, default, reduce-overhead), in a fresh
+process: the default loop as `tests/integration/test_learning_loop.py` runs it (walk, 100 iterations,
+Ray, tracking off), then two tracking errors of the trained controller against the untrained one the
+test builds, each as after / before:
+
+  test      the test's own: `tracking_error` with 1-second segments (the walk clip gives 2).
+  starts    the same quantity from `--starts` start frames spread evenly over the clip (1 second each,
+            the posterior's mean action, no tracking termination): the mean over start phases, where
+            the test's two segments are two draws of it.
+
+It prints one row per run and, for the first two modes, each metric's paired difference (second minus
+first) over the seeds with its 95% t interval and the Wilcoxon signed-rank p (scipy.stats). A fixed
+seed of this loop is one draw: float rounding alone (a compiled loss, another CPU) moves it, so
+only a difference whose interval excludes zero says one mode learns differently per sample.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+from scipy import stats
+
+ROOT = Path(__file__).resolve().parents[1]
+
+ONE = """
+import json, sys
+import numpy as np, torch
+from tempfile import TemporaryDirectory
+from orchestrator.build import untracked_trainer
+from orchestrator.compose import compose, validate
+from orchestrator.world import evaluation_sim_config, load_character_and_library
+from workers.evaluation.controller import (evaluation_mode, relative_position_error, tracking_error,
+    without_tracking_termination)
+from workers.learners.vae import build_controller
+from workers.models import body_state
+from workers.sim.env import make_sim
+from workers.tracking_goal import next_goal
+
+seed, mode, starts = int(sys.argv[1]), sys.argv[2], int(sys.argv[3])
+OVERRIDES = ["motion=walk", "algo.loop.iterations=100", "algo.loop.checkpoint_every=0", "eval.fall_rollouts=8",
+             "eval.fall_max_seconds=5", "eval.tracking_seconds=1.0", "tracking=off", "progress=false"]
+
+def from_starts(controller, library, character, sim_config):
+    config = without_tracking_termination(sim_config)
+    frames = np.linspace(0, int(library.num_frames[0]) - 1, starts, endpoint=False).astype(int)
+    steps = int(round(config.control_hz))  # one second
+    sim = make_sim(character, library, starts, config, seed=0)
+    sim.reset(np.arange(starts), np.zeros(starts, dtype=int), frames)
+    total = np.zeros(starts)
+    with evaluation_mode(controller):
+        for _ in range(steps):
+            bs = sim.body_states()
+            s = body_state.features(torch.from_numpy(bs))
+            q, _ = controller.encode(s, next_goal(controller.goal, sim, bs))
+            result = sim.step(controller.act(s, q.mean).numpy())
+            total += relative_position_error(result.kin.xpos, sim.reference_state().xpos)
+    return float(total.mean() / steps)
+
+with TemporaryDirectory() as tmp:
+    cfg = validate(compose([f"run_dir={tmp}", *OVERRIDES, f"seed={seed}", f"runtime.learner_compile={mode}"]))
+    character, library = load_character_and_library(cfg)
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(0)
+        untrained = build_controller(character.num_bodies, character.num_actions, cfg.algo.vae)
+    sc = evaluation_sim_config(cfg)
+    before = (tracking_error(untrained, library, character, 1.0, sc, seed=cfg.seed)["mean"],
+              from_starts(untrained, library, character, sc))
+    runtime, trainer = untracked_trainer(cfg)
+    try:
+        trainer.method.start(trainer)
+        for _ in range(cfg.algo.loop.iterations):
+            trainer.step()
+        weights = runtime.get(runtime.call(trainer.handles["vae"], "get_weights"))
+        trainer.method.finish(trainer)
+    finally:
+        runtime.shutdown()
+    trained = build_controller(character.num_bodies, character.num_actions, cfg.algo.vae)
+    trained.load_state_dict(weights.state)
+    after = (tracking_error(trained, library, character, 1.0, sc, seed=cfg.seed)["mean"],
+             from_starts(trained, library, character, sc))
+    row = {"seed": seed, "mode": mode, "test": after[0] / before[0], "starts": after[1] / before[1],
+           "test_m": [before[0], after[0]], "starts_m": [before[1], after[1]]}
+    print("RESULT " + json.dumps(row))
+"""
+
+METRICS = ("test", "starts")
+
+
+def seeds(text: str) -> list[int]:
+    """Seeds written as a range, 0-7, or a list, 0,2,5."""
+    if "-" in text:
+        lo, hi = text.split("-")
+        return list(range(int(lo), int(hi) + 1))
+    return [int(s) for s in text.split(",")]
+
+
+def one(seed: int, mode: str, starts: int) -> dict:
+    out = subprocess.run(
+        [sys.executable, "-c", ONE, str(seed), mode, str(starts)],
+        cwd=ROOT,
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
+        capture_output=True,
+        text=True,
+    )
+    for line in out.stdout.splitlines():
+        if line.startswith("RESULT "):
+            return json.loads(line[len("RESULT ") :])
+    raise SystemExit(f"learning_seeds: seed {seed}, {mode} failed (exit {out.returncode}):\n{out.stderr[-2000:]}")
+
+
+def paired(rows: list[dict], first: str, second: str, metric: str) -> str:
+    by = {(r["seed"], r["mode"]): r[metric] for r in rows}
+    pairs = [(by[s, first], by[s, second]) for s, m in by if m == first and (s, second) in by]
+    d = np.array([b - a for a, b in pairs])
+    if len(d) < 2:
+        return f"{metric}: fewer than two paired seeds"
+    lo, hi = stats.t.interval(0.95, len(d) - 1, loc=d.mean(), scale=stats.sem(d))
+    wilcoxon = stats.wilcoxon(d).pvalue if np.any(d) else 1.0
+    means = np.mean(pairs, axis=0)
+    return (
+        f"{metric}: {first} {means[0]:.3f}, {second} {means[1]:.3f} (mean after/before over {len(d)} seeds); "
+        f"{second} - {first} {d.mean():+.3f}, 95% t interval [{lo:+.3f}, {hi:+.3f}], Wilcoxon p {wilcoxon:.2f}"
+    )
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--seeds", default="0-7", type=seeds)
+    parser.add_argument("--modes", default="eager,default")
+    parser.add_argument("--starts", type=int, default=16)
+    parser.add_argument("--json", help="also write the rows here")
+    args = parser.parse_args()
+    modes = args.modes.split(",")
+    rows = []
+    for seed in args.seeds:
+        for mode in modes:
+            rows.append(one(seed, mode, args.starts))
+            r = rows[-1]
+            print(f"seed {seed} {mode}: test {r['test']:.3f}, starts {r['starts']:.3f} (after / before)", flush=True)
+    if len(modes) >= 2:
+        for metric in METRICS:
+            print(paired(rows, modes[0], modes[1], metric))
+    if args.json:
+        Path(args.json).write_text(json.dumps(rows, indent=1))
+
+
+if __name__ == "__main__":
+    main()
