@@ -39,12 +39,10 @@ from tempfile import TemporaryDirectory
 from orchestrator.build import untracked_trainer
 from orchestrator.compose import compose, validate
 from orchestrator.world import evaluation_sim_config, load_character_and_library
-from workers.evaluation.controller import (evaluation_mode, relative_position_error, tracking_error,
-    without_tracking_termination)
+from workers.evaluation.controller import (evaluation_mode, posterior_mean_action, relative_position_error,
+    tracking_error, without_tracking_termination)
 from workers.learners.vae import build_controller
-from workers.models import body_state
 from workers.sim.env import make_sim
-from workers.tracking_goal import next_goal
 
 seed, mode, starts = int(sys.argv[1]), sys.argv[2], int(sys.argv[3])
 OVERRIDES = ["motion=walk", "algo.loop.iterations=100", "algo.loop.checkpoint_every=0", "eval.fall_rollouts=8",
@@ -59,10 +57,7 @@ def from_starts(controller, library, character, sim_config):
     total = np.zeros(starts)
     with evaluation_mode(controller):
         for _ in range(steps):
-            bs = sim.body_states()
-            s = body_state.features(torch.from_numpy(bs))
-            q, _ = controller.encode(s, next_goal(controller.goal, sim, bs))
-            result = sim.step(controller.act(s, q.mean).numpy())
+            result = sim.step(posterior_mean_action(controller, sim))
             total += relative_position_error(result.kin.xpos, sim.reference_state().xpos)
     return float(total.mean() / steps)
 

@@ -31,11 +31,10 @@ from orchestrator.evaluation.protocols import evaluate_controller
 from orchestrator.upstream import expert_weights
 from orchestrator.world import evaluation_sim_config
 from workers.distill import teacher_actions
+from workers.evaluation.controller import posterior_mean_action
 from workers.evaluation.success import tracking_success
 from workers.learners.vae import build_controller
-from workers.models import body_state
 from workers.policies import VAEPolicy, expert_module
-from workers.tracking_goal import next_goal
 
 
 class Pulse(ReplayFed):
@@ -95,10 +94,8 @@ class Pulse(ReplayFed):
         visited: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
 
         def student(sim, bs):  # the encoder's mean given the reference's next state
-            s = body_state.features(torch.from_numpy(bs))
             frames = sim.start_frame + sim.steps
-            q, _ = controller.encode(s, next_goal(controller.goal, sim, bs))
-            a = controller.act(s, q.mean).numpy()
+            a = posterior_mean_action(controller, sim, bs)
             visited.append((bs.copy(), sim.clip_id.copy(), frames.copy(), a))
             return a
 

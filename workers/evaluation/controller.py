@@ -55,6 +55,15 @@ def sim_features(sim: Simulator) -> torch.Tensor:
     return body_state.features(torch.from_numpy(sim.body_states()))
 
 
+def posterior_mean_action(controller: VAEController, sim: Simulator, bs: np.ndarray | None = None) -> np.ndarray:
+    """a = μ_π(s, μ_q(s, goal)) [N, A] for the simulated characters (their body states `bs`, if read already):
+    the controller tracking the reference, as the tracking evaluations and recordings drive it."""
+    bs = sim.body_states() if bs is None else bs
+    s = body_state.features(torch.from_numpy(bs))
+    posterior, _ = controller.encode(s, next_goal(controller.goal, sim, bs))
+    return controller.act(s, posterior.mean).numpy()
+
+
 def reference_targets(library: MotionLibrary) -> Policy:
     """A baseline policy: the PD targets of the reference's next pose (no feedback at all)."""
 
@@ -191,13 +200,7 @@ def tracking_error(
     total = np.zeros(n)
     with evaluation_mode(controller):
         for t in range(int(steps.max())):
-            if policy is not None:
-                actions = np.asarray(policy(sim))
-            else:
-                bs = sim.body_states()
-                s = body_state.features(torch.from_numpy(bs))
-                posterior, _ = controller.encode(s, next_goal(controller.goal, sim, bs))
-                actions = controller.act(s, posterior.mean).numpy()
+            actions = np.asarray(policy(sim)) if policy is not None else posterior_mean_action(controller, sim)
             result = sim.step(actions)
             err = relative_position_error(result.kin.xpos, sim.reference_state().xpos)
             total += np.where(t < steps, err, 0.0)

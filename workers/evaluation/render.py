@@ -121,12 +121,8 @@ def record_tracking(
 ) -> Recording:
     """One clip (`clip`, else `fall_start`'s) tracked from its first frame with the posterior mean, as
     `tracking_error` tracks a segment, for up to `max_seconds` (a one-shot clip: until its last frame)."""
-    import torch
-
-    from workers.evaluation.controller import evaluation_mode, fall_start
-    from workers.models import body_state
+    from workers.evaluation.controller import evaluation_mode, fall_start, posterior_mean_action
     from workers.sim.env import make_sim, without_tracking_termination
-    from workers.tracking_goal import next_goal
 
     config = without_tracking_termination(sim_config)
     c = library.clip_id(clip) if clip is not None else fall_start(library)[0]
@@ -136,10 +132,7 @@ def record_tracking(
     qpos, ref = [sim.kin_state().qpos[0]], [sim.reference_state().qpos[0]]
     with evaluation_mode(controller):
         for _ in range(steps):
-            bs = sim.body_states()
-            s = body_state.features(torch.from_numpy(bs))
-            posterior, _ = controller.encode(s, next_goal(controller.goal, sim, bs))
-            result = sim.step(controller.act(s, posterior.mean).numpy())
+            result = sim.step(posterior_mean_action(controller, sim))
             qpos.append(result.kin.qpos[0])
             ref.append(sim.reference_state().qpos[0])
     return Recording(f"tracking-{_slug(library.names[c])}", np.stack(qpos), np.stack(ref), sim.model)
