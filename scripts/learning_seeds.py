@@ -1,11 +1,12 @@
 """The learning test's protocol over seeds, for two settings: is one of them worse per sample?
 
-    python scripts/learning_seeds.py [--seeds 0-7] [--modes eager,default] [--starts 16] [--json FILE]
+    python scripts/learning_seeds.py [--seeds 0-7] [--modes eager,default] [--starts 16] [--iterations 100]
+        [--json FILE]
 
 For each seed and each `runtime.learner_compile` mode (eager, default, reduce-overhead), in a fresh
-process: the default loop as `tests/integration/test_learning_loop.py` runs it (walk, 100 iterations,
-Ray, tracking off), then two tracking errors of the trained controller against the untrained one the
-test builds, each as after / before:
+process: the default loop as `tests/integration/test_learning_loop.py` runs it (walk, 100 iterations
+unless `--iterations` says otherwise, Ray, tracking off), then two tracking errors of the trained
+controller against the untrained one the test builds, each as after / before:
 
   test      the test's own: `tracking_error` with 1-second segments (the walk clip gives 2).
   starts    the same quantity from `--starts` start frames spread evenly over the clip (1 second each,
@@ -44,9 +45,10 @@ from workers.evaluation.controller import (evaluation_mode, posterior_mean_actio
 from workers.learners.vae import build_controller
 from workers.sim.env import make_sim
 
-seed, mode, starts = int(sys.argv[1]), sys.argv[2], int(sys.argv[3])
-OVERRIDES = ["motion=walk", "algo.loop.iterations=100", "algo.loop.checkpoint_every=0", "eval.fall_rollouts=8",
-             "eval.fall_max_seconds=5", "eval.tracking_seconds=1.0", "tracking=off", "progress=false"]
+seed, mode, starts, iterations = int(sys.argv[1]), sys.argv[2], int(sys.argv[3]), int(sys.argv[4])
+OVERRIDES = ["motion=walk", f"algo.loop.iterations={iterations}", "algo.loop.checkpoint_every=0",
+             "eval.fall_rollouts=8", "eval.fall_max_seconds=5", "eval.tracking_seconds=1.0", "tracking=off",
+             "progress=false"]
 
 def from_starts(controller, library, character, sim_config):
     config = without_tracking_termination(sim_config)
@@ -99,9 +101,9 @@ def seeds(text: str) -> list[int]:
     return [int(s) for s in text.split(",")]
 
 
-def one(seed: int, mode: str, starts: int) -> dict:
+def one(seed: int, mode: str, starts: int, iterations: int) -> dict:
     out = subprocess.run(
-        [sys.executable, "-c", ONE, str(seed), mode, str(starts)],
+        [sys.executable, "-c", ONE, str(seed), mode, str(starts), str(iterations)],
         cwd=ROOT,
         env={**os.environ, "PYTHONPATH": str(ROOT)},
         capture_output=True,
@@ -133,13 +135,14 @@ def main() -> None:
     parser.add_argument("--seeds", default="0-7", type=seeds)
     parser.add_argument("--modes", default="eager,default")
     parser.add_argument("--starts", type=int, default=16)
+    parser.add_argument("--iterations", type=int, default=100, help="the test's 100 unless given")
     parser.add_argument("--json", help="also write the rows here")
     args = parser.parse_args()
     modes = args.modes.split(",")
     rows = []
     for seed in args.seeds:
         for mode in modes:
-            rows.append(one(seed, mode, args.starts))
+            rows.append(one(seed, mode, args.starts, args.iterations))
             r = rows[-1]
             print(f"seed {seed} {mode}: test {r['test']:.3f}, starts {r['starts']:.3f} (after / before)", flush=True)
     if len(modes) >= 2:
