@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 
+from workers.learners.base import Weights
 from workers.learners.discriminator import DiscriminatorBatch, DiscriminatorLearner
 from workers.learners.vae import VAEBatch, VAEConfig, VAELearner
 from workers.learners.world_model import WorldModelBatch, WorldModelConfig, WorldModelLearner
@@ -121,6 +122,29 @@ def test_compiled_controlvae_matches_eager_with_the_same_draws() -> None:
     assert results[1][1] == pytest.approx(results[0][1], rel=1e-5)
     for g_eager, g_compiled in zip(results[0][2], results[1][2], strict=True):
         torch.testing.assert_close(g_compiled, g_eager, rtol=1e-4, atol=1e-6)
+
+
+@pytest.mark.slow  # compiles
+def test_compiled_controlvae_follows_new_batches_and_world_model_weights() -> None:
+    """As in the loop: each update on a new batch (the state normaliser's statistics move) and new world-model
+    weights loaded between updates. A compiled graph that had kept any of them as constants from its first
+    call would drift from eager here, where the fixed-batch test above cannot tell."""
+    eager, compiled = _vae_learner(), _vae_learner()
+    compiled.compile()
+    gen = torch.Generator().manual_seed(5)
+    for k in range(3):
+        if k:
+            torch.manual_seed(10 + k)
+            weights = Weights(k, WorldModel(NUM_BODIES, ACTION_DIM, (16,)).state_dict())
+            for vae in (eager, compiled):
+                vae.set_world_model_weights(weights)
+        states = _batch(n=8, t=3).states * (1 + k) + torch.randn(1, generator=gen)
+        batch = VAEBatch(states, states.flip(0))
+        losses = [vae.update(batch)["loss"] for vae in (eager, compiled)]
+        assert losses[1] == pytest.approx(losses[0], rel=1e-5)
+    assert compiled.world_model.state_dict()["net.0.weight"].equal(weights.state["net.0.weight"])
+    for p_eager, p_compiled in zip(eager.parameters(), compiled.parameters(), strict=True):
+        torch.testing.assert_close(p_compiled, p_eager, rtol=1e-4, atol=1e-6)
 
 
 def test_runtime_learner_compile_compiles_every_learner_but_the_discriminator() -> None:
