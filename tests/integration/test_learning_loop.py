@@ -1,9 +1,9 @@
-"""The default ControlVAE loop learns: after a short local run the controller tracks the clips
-better in the simulator than the untrained one it started from.
+"""The default ControlVAE loop learns: after the default run's 200 iterations on the walk clip the
+controller tracks it better in the simulator than the untrained one it started from.
 
 This is the whole service's learning test: collection, the replay buffer, both learners,
-weight publication and evaluation, at the default run's model and loop settings with fewer
-iterations and a smaller evaluation.
+weight publication and evaluation, at the default run's model and loop settings with one clip
+and a smaller evaluation.
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ CONF = Path(__file__).resolve().parents[2] / "conf"
 
 OVERRIDES = [
     "motion=walk",
-    "algo.loop.iterations=100",
+    "algo.loop.iterations=200",
     "algo.loop.checkpoint_every=0",
     "eval.fall_rollouts=8",
     "eval.fall_max_seconds=5",
@@ -56,11 +56,12 @@ def test_default_loop_improves_tracking_in_the_simulator(tmp_path):
     )
     assert np.isfinite(after)
     # The loop is deterministic on one machine, but its trajectory is not the same on another (a different
-    # CPU's floating point): after / before measured 0.67, 0.70, 0.82 for seeds 0, 1, 2 on one machine and
-    # 0.87 for seed 0 on another. An untrained or broken loop stays at 1 or above; 0.9 asks for a clear gain.
-    # Not every seed passes: on 2026-12-05 seeds 0-3 gave 0.68, 0.70, 0.67 and 1.33 (README, "Learners"), and
-    # a float rounding's difference (the losses compiled) moved seed 0 to 0.95. A fixed seed of a chaotic loop.
-    # The clip's two segments are a narrow view, too: from 16 start frames spread over it, the same seed-0
-    # controller is no better than untrained (1.06; `scripts/learning_seeds.py`, README "Learners").
-    assert after < 0.9 * before
+    # CPU's floating point), and a fixed seed of it is one draw. At 100 iterations that draw was a lottery:
+    # after / before ranged from 0.37 to 1.33 over seeds 0-7 (2 of 8 eager seeds above 0.9; the losses
+    # compiled, a float rounding's difference, moved seed 0 from 0.68 to 0.95), and from 16 start frames
+    # spread over the clip seed 0's controller was no better than untrained (1.06). At the default run's 200
+    # iterations (`scripts/learning_seeds.py --seeds 0-5 --iterations 200`, 2026-12-06) every run learned:
+    # 0.19-0.52 over six seeds, eager and compiled (0.22-0.42 from 16 starts). An untrained or broken loop
+    # stays at 1 or above; 0.7 asks for a clear gain with room for another machine's rounding.
+    assert after < 0.7 * before
     assert np.mean(rec[-5:]) < 0.85 * np.mean(rec[:5])
