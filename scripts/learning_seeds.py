@@ -1,12 +1,12 @@
 """The learning test's protocol over seeds, for two settings: is one of them worse per sample?
 
-    python scripts/learning_seeds.py [--seeds 0-7] [--modes eager,default] [--starts 16] [--iterations 100]
+    python scripts/learning_seeds.py [--seeds 0-7] [--modes eager,default] [--starts 16] [--iterations N]
         [--json FILE]
 
 For each seed and each `runtime.learner_compile` mode (eager, default, reduce-overhead), in a fresh
-process: the default loop as `tests/integration/test_learning_loop.py` runs it (walk, 100 iterations
-unless `--iterations` says otherwise, Ray, tracking off), then two tracking errors of the trained
-controller against the untrained one the test builds, each as after / before:
+process: the default loop as `tests/integration/test_learning_loop.py` runs it (its overrides, read from
+it: walk, its iterations unless `--iterations` says otherwise; Ray, tracking off), then two tracking
+errors of the trained controller against the untrained one the test builds, each as after / before:
 
   test      the test's own: `tracking_error` with 1-second segments (the walk clip gives 2).
   starts    the same quantity from `--starts` start frames spread evenly over the clip (1 second each,
@@ -45,10 +45,12 @@ from workers.evaluation.controller import (evaluation_mode, posterior_mean_actio
 from workers.learners.vae import build_controller
 from workers.sim.env import make_sim
 
-seed, mode, starts, iterations = int(sys.argv[1]), sys.argv[2], int(sys.argv[3]), int(sys.argv[4])
-OVERRIDES = ["motion=walk", f"algo.loop.iterations={iterations}", "algo.loop.checkpoint_every=0",
-             "eval.fall_rollouts=8", "eval.fall_max_seconds=5", "eval.tracking_seconds=1.0", "tracking=off",
-             "progress=false"]
+from tests.integration.test_learning_loop import OVERRIDES as TEST
+
+seed, mode, starts, iterations = int(sys.argv[1]), sys.argv[2], int(sys.argv[3]), sys.argv[4]
+mine = ("tracking=", *(("algo.loop.iterations=",) if iterations else ()))
+OVERRIDES = [o for o in TEST if not o.startswith(mine)] + ["tracking=off"]
+OVERRIDES += [f"algo.loop.iterations={iterations}"] if iterations else []
 
 def from_starts(controller, library, character, sim_config):
     config = without_tracking_termination(sim_config)
@@ -101,9 +103,9 @@ def seeds(text: str) -> list[int]:
     return [int(s) for s in text.split(",")]
 
 
-def one(seed: int, mode: str, starts: int, iterations: int) -> dict:
+def one(seed: int, mode: str, starts: int, iterations: int | None) -> dict:
     out = subprocess.run(
-        [sys.executable, "-c", ONE, str(seed), mode, str(starts), str(iterations)],
+        [sys.executable, "-c", ONE, str(seed), mode, str(starts), str(iterations or "")],
         cwd=ROOT,
         env={**os.environ, "PYTHONPATH": str(ROOT)},
         capture_output=True,
@@ -135,7 +137,7 @@ def main() -> None:
     parser.add_argument("--seeds", default="0-7", type=seeds)
     parser.add_argument("--modes", default="eager,default")
     parser.add_argument("--starts", type=int, default=16)
-    parser.add_argument("--iterations", type=int, default=100, help="the test's 100 unless given")
+    parser.add_argument("--iterations", type=int, help="the test's own unless given")
     parser.add_argument("--json", help="also write the rows here")
     args = parser.parse_args()
     modes = args.modes.split(",")
