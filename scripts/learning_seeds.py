@@ -1,7 +1,7 @@
 """The learning test's protocol over seeds, for two settings: is one of them worse per sample?
 
     python scripts/learning_seeds.py [--seeds 0-7] [--modes eager,default] [--starts 16] [--iterations N]
-        [--json FILE]
+        [--json FILE] [--rows FILE ...] [--margin M]
 
 For each seed and each `runtime.learner_compile` mode (eager, default, reduce-overhead), in a fresh
 process: the default loop as `tests/integration/test_learning_loop.py` runs it (its overrides, read from
@@ -17,6 +17,11 @@ It prints one row per run and, for the first two modes, each metric's paired dif
 first) over the seeds with its 95% t interval and the Wilcoxon signed-rank p (scipy.stats). A fixed
 seed of this loop is one draw: float rounding alone (a compiled loss, another CPU) moves it, so
 only a difference whose interval excludes zero says one mode learns differently per sample.
+
+`--rows` reads the rows of earlier runs (their `--json`) and summarises them with this run's (`--seeds ""`
+runs nothing). `--margin M`, fixed before the runs: the second mode is shown no worse than the first on a
+metric when the one-sided t test rejects "second - first >= M" (the 95% interval's upper end below M).
+The p values of each family (difference from zero; non-inferiority) are Holm-adjusted over the metrics.
 """
 
 from __future__ import annotations
@@ -97,6 +102,8 @@ METRICS = ("test", "starts")
 
 def seeds(text: str) -> list[int]:
     """Seeds written as a range, 0-7, or a list, 0,2,5."""
+    if not text:
+        return []
     if "-" in text:
         lo, hi = text.split("-")
         return list(range(int(lo), int(hi) + 1))
@@ -117,19 +124,48 @@ def one(seed: int, mode: str, starts: int, iterations: int | None) -> dict:
     raise SystemExit(f"learning_seeds: seed {seed}, {mode} failed (exit {out.returncode}):\n{out.stderr[-2000:]}")
 
 
-def paired(rows: list[dict], first: str, second: str, metric: str) -> str:
+def differences(rows: list[dict], first: str, second: str, metric: str) -> tuple[np.ndarray, np.ndarray]:
+    """Each seed's (first, second) values [n, 2] and their differences second - first [n]."""
     by = {(r["seed"], r["mode"]): r[metric] for r in rows}
-    pairs = [(by[s, first], by[s, second]) for s, m in by if m == first and (s, second) in by]
-    d = np.array([b - a for a, b in pairs])
-    if len(d) < 2:
-        return f"{metric}: fewer than two paired seeds"
-    lo, hi = stats.t.interval(0.95, len(d) - 1, loc=d.mean(), scale=stats.sem(d))
-    wilcoxon = stats.wilcoxon(d).pvalue if np.any(d) else 1.0
-    means = np.mean(pairs, axis=0)
-    return (
-        f"{metric}: {first} {means[0]:.3f}, {second} {means[1]:.3f} (mean after/before over {len(d)} seeds); "
-        f"{second} - {first} {d.mean():+.3f}, 95% t interval [{lo:+.3f}, {hi:+.3f}], Wilcoxon p {wilcoxon:.2f}"
-    )
+    pairs = np.array([(by[s, first], by[s, second]) for s, m in sorted(by) if m == first and (s, second) in by])
+    return pairs, (pairs[:, 1] - pairs[:, 0] if len(pairs) else np.array([]))
+
+
+def holm(p: list[float]) -> list[float]:
+    """Holm's step-down adjustment of a family of p values (scipy.stats has none; statsmodels is not a dependency)."""
+    order = np.argsort(p)
+    adjusted, running = np.empty(len(p)), 0.0
+    for rank, i in enumerate(order):
+        running = max(running, min(1.0, (len(p) - rank) * p[i]))
+        adjusted[i] = running
+    return adjusted.tolist()
+
+
+def summary(rows: list[dict], first: str, second: str, margin: float | None) -> list[str]:
+    """One line per metric: the means, the paired difference with its 95% t interval, the Wilcoxon p and the
+    Holm-adjusted t p; with a margin, the Holm-adjusted p of the non-inferiority test."""
+    lines, p_zero, p_margin = [], [], []
+    for metric in METRICS:
+        pairs, d = differences(rows, first, second, metric)
+        if len(d) < 2:
+            return [f"{metric}: fewer than two paired seeds"]
+        lo, hi = stats.t.interval(0.95, len(d) - 1, loc=d.mean(), scale=stats.sem(d))
+        wilcoxon = stats.wilcoxon(d).pvalue if np.any(d) else 1.0
+        p_zero.append(float(stats.ttest_1samp(d, 0.0).pvalue))
+        if margin is not None:
+            p_margin.append(float(stats.ttest_1samp(d, margin, alternative="less").pvalue))
+        means = pairs.mean(axis=0)
+        lines.append(
+            f"{metric}: {first} {means[0]:.3f}, {second} {means[1]:.3f} (mean after/before over {len(d)} seeds); "
+            f"{second} - {first} {d.mean():+.3f}, 95% t interval [{lo:+.3f}, {hi:+.3f}], Wilcoxon p {wilcoxon:.2f}"
+        )
+    for k, p in enumerate(holm(p_zero)):
+        lines[k] += f", t p {p_zero[k]:.2f} (Holm {p:.2f})"
+    if margin is not None:
+        for k, p in enumerate(holm(p_margin)):
+            verdict = "no worse" if p < 0.05 else "not shown no worse"
+            lines[k] += f"; against the margin {margin:+.3f}: Holm p {p:.3f}, {verdict}"
+    return lines
 
 
 def main() -> None:
@@ -139,17 +175,18 @@ def main() -> None:
     parser.add_argument("--starts", type=int, default=16)
     parser.add_argument("--iterations", type=int, help="the test's own unless given")
     parser.add_argument("--json", help="also write the rows here")
+    parser.add_argument("--rows", nargs="*", default=[], help="earlier runs' --json files to summarise with these")
+    parser.add_argument("--margin", type=float, help="the non-inferiority margin, fixed before the runs")
     args = parser.parse_args()
     modes = args.modes.split(",")
-    rows = []
+    rows = [row for path in args.rows for row in json.loads(Path(path).read_text())]
     for seed in args.seeds:
         for mode in modes:
             rows.append(one(seed, mode, args.starts, args.iterations))
             r = rows[-1]
             print(f"seed {seed} {mode}: test {r['test']:.3f}, starts {r['starts']:.3f} (after / before)", flush=True)
     if len(modes) >= 2:
-        for metric in METRICS:
-            print(paired(rows, modes[0], modes[1], metric))
+        print("\n".join(summary(rows, modes[0], modes[1], args.margin)))
     if args.json:
         Path(args.json).write_text(json.dumps(rows, indent=1))
 

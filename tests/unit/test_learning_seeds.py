@@ -1,0 +1,45 @@
+"""scripts/learning_seeds.py's statistics on rows whose answers are worked by hand (the runs themselves are the
+learning test's, which has its own)."""
+
+import importlib.util
+from pathlib import Path
+
+import pytest
+
+SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "learning_seeds.py"
+spec = importlib.util.spec_from_file_location("learning_seeds", SCRIPT)
+learning_seeds = importlib.util.module_from_spec(spec)
+spec.loader.exec_module(learning_seeds)
+
+
+def rows(first: list[float], second: list[float]) -> list[dict]:
+    out = []
+    for seed, (a, b) in enumerate(zip(first, second, strict=True)):
+        out += [
+            {"seed": seed, "mode": "eager", "test": a, "starts": a},
+            {"seed": seed, "mode": "default", "test": b, "starts": b},
+        ]
+    return out
+
+
+def test_holm_by_hand():
+    # sorted 0.01, 0.03, 0.04: 3 x 0.01 = 0.03, 2 x 0.03 = 0.06, max(0.06, 1 x 0.04) = 0.06
+    assert learning_seeds.holm([0.01, 0.04, 0.03]) == pytest.approx([0.03, 0.06, 0.06])
+    assert learning_seeds.holm([0.6, 0.9]) == pytest.approx([1.0, 1.0])  # capped at one
+
+
+def test_paired_interval_and_margin_by_hand():
+    # differences 0.01, 0.02, 0.03: mean 0.02, sd 0.01, sem 0.01/sqrt(3); t(2, 0.975) = 4.303 -> +-0.0248
+    r = rows([0.30, 0.30, 0.30], [0.31, 0.32, 0.33])
+    pairs, d = learning_seeds.differences(r, "eager", "default", "test")
+    assert d == pytest.approx([0.01, 0.02, 0.03])
+    line = learning_seeds.summary(r, "eager", "default", margin=0.10)[0]
+    assert "+0.020, 95% t interval [-0.005, +0.045]" in line
+    assert line.endswith("no worse") and "not shown" not in line  # the interval's upper end is far below 0.10
+    assert learning_seeds.summary(r, "eager", "default", margin=0.03)[0].endswith("not shown no worse")
+
+
+def test_seed_ranges():
+    assert learning_seeds.seeds("6-9") == [6, 7, 8, 9]
+    assert learning_seeds.seeds("0,2,5") == [0, 2, 5]
+    assert learning_seeds.seeds("") == []
