@@ -19,9 +19,9 @@ seed of this loop is one draw: float rounding alone (a compiled loss, another CP
 only a difference whose interval excludes zero says one mode learns differently per sample.
 
 `--rows` reads the rows of earlier runs (their `--json`) and summarises them with this run's (`--seeds ""`
-runs nothing). `--margin M`, fixed before the runs: the second mode is shown no worse than the first on a
-metric when the one-sided t test rejects "second - first >= M" (the 95% interval's upper end below M).
-The p values of each family (difference from zero; non-inferiority) are Holm-adjusted over the metrics.
+runs nothing). `--margin M`, fixed before the runs, judges "second - first < M" on each metric with the
+sweeps' verdicts (`orchestrator.sweep.verdict.judge`: the paired differences' t interval, Bonferroni over
+the metrics): "no worse" when the interval ends below M, "worse" when it starts above, else "not resolved".
 """
 
 from __future__ import annotations
@@ -35,6 +35,8 @@ from pathlib import Path
 
 import numpy as np
 from scipy import stats
+
+from orchestrator.sweep.verdict import CONTRADICTED, REPRODUCED, judge
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -131,40 +133,29 @@ def differences(rows: list[dict], first: str, second: str, metric: str) -> tuple
     return pairs, (pairs[:, 1] - pairs[:, 0] if len(pairs) else np.array([]))
 
 
-def holm(p: list[float]) -> list[float]:
-    """Holm's step-down adjustment of a family of p values (scipy.stats has none; statsmodels is not a dependency)."""
-    order = np.argsort(p)
-    adjusted, running = np.empty(len(p)), 0.0
-    for rank, i in enumerate(order):
-        running = max(running, min(1.0, (len(p) - rank) * p[i]))
-        adjusted[i] = running
-    return adjusted.tolist()
+VERDICTS = {REPRODUCED: "no worse", CONTRADICTED: "worse by more than the margin"}
 
 
 def summary(rows: list[dict], first: str, second: str, margin: float | None) -> list[str]:
-    """One line per metric: the means, the paired difference with its 95% t interval, the Wilcoxon p and the
-    Holm-adjusted t p; with a margin, the Holm-adjusted p of the non-inferiority test."""
-    lines, p_zero, p_margin = [], [], []
+    """One line per metric: the means, the paired difference with its 95% t interval and the Wilcoxon p; with
+    a margin, the verdict on "second - first < margin" (Bonferroni over the metrics)."""
+    lines = []
     for metric in METRICS:
         pairs, d = differences(rows, first, second, metric)
         if len(d) < 2:
             return [f"{metric}: fewer than two paired seeds"]
         lo, hi = stats.t.interval(0.95, len(d) - 1, loc=d.mean(), scale=stats.sem(d))
         wilcoxon = stats.wilcoxon(d).pvalue if np.any(d) else 1.0
-        p_zero.append(float(stats.ttest_1samp(d, 0.0).pvalue))
-        if margin is not None:
-            p_margin.append(float(stats.ttest_1samp(d, margin, alternative="less").pvalue))
         means = pairs.mean(axis=0)
-        lines.append(
+        line = (
             f"{metric}: {first} {means[0]:.3f}, {second} {means[1]:.3f} (mean after/before over {len(d)} seeds); "
             f"{second} - {first} {d.mean():+.3f}, 95% t interval [{lo:+.3f}, {hi:+.3f}], Wilcoxon p {wilcoxon:.2f}"
         )
-    for k, p in enumerate(holm(p_zero)):
-        lines[k] += f", t p {p_zero[k]:.2f} (Holm {p:.2f})"
-    if margin is not None:
-        for k, p in enumerate(holm(p_margin)):
-            verdict = "no worse" if p < 0.05 else "not shown no worse"
-            lines[k] += f"; against the margin {margin:+.3f}: Holm p {p:.3f}, {verdict}"
+        if margin is not None:
+            j = judge(d, None, (-np.inf, margin), claims=len(METRICS))
+            verdict = VERDICTS.get(j.verdict, j.verdict)
+            line += f"; below {margin:+.3f}? {100 * j.confidence:.1f}% [{j.low:+.3f}, {j.high:+.3f}]: {verdict}"
+        lines.append(line)
     return lines
 
 

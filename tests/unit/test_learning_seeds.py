@@ -22,21 +22,18 @@ def rows(first: list[float], second: list[float]) -> list[dict]:
     return out
 
 
-def test_holm_by_hand():
-    # sorted 0.01, 0.03, 0.04: 3 x 0.01 = 0.03, 2 x 0.03 = 0.06, max(0.06, 1 x 0.04) = 0.06
-    assert learning_seeds.holm([0.01, 0.04, 0.03]) == pytest.approx([0.03, 0.06, 0.06])
-    assert learning_seeds.holm([0.6, 0.9]) == pytest.approx([1.0, 1.0])  # capped at one
-
-
 def test_paired_interval_and_margin_by_hand():
-    # differences 0.01, 0.02, 0.03: mean 0.02, sd 0.01, sem 0.01/sqrt(3); t(2, 0.975) = 4.303 -> +-0.0248
+    # differences 0.01, 0.02, 0.03: mean 0.02, sd 0.01, sem 0.01/sqrt(3) = 0.005774
     r = rows([0.30, 0.30, 0.30], [0.31, 0.32, 0.33])
     pairs, d = learning_seeds.differences(r, "eager", "default", "test")
     assert d == pytest.approx([0.01, 0.02, 0.03])
     line = learning_seeds.summary(r, "eager", "default", margin=0.10)[0]
-    assert "+0.020, 95% t interval [-0.005, +0.045]" in line
-    assert line.endswith("no worse") and "not shown" not in line  # the interval's upper end is far below 0.10
-    assert learning_seeds.summary(r, "eager", "default", margin=0.03)[0].endswith("not shown no worse")
+    assert "+0.020, 95% t interval [-0.005, +0.045]" in line  # t(2, 0.975) = 4.303: +-0.0248
+    # two metrics, Bonferroni: 97.5% each, t(2, 0.9875) = 6.205: +-0.0358
+    assert line.endswith("97.5% [-0.016, +0.056]: no worse")  # ends below 0.10
+    assert learning_seeds.summary(r, "eager", "default", margin=0.03)[0].endswith("not resolved")  # straddles 0.03
+    worse = learning_seeds.summary(r, "eager", "default", margin=-0.05)[0]
+    assert worse.endswith("worse by more than the margin")  # starts above -0.05
 
 
 def test_seed_ranges():
