@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import signal
+
 import pytest
 import torch
 
@@ -17,6 +19,14 @@ def one_torch_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(before)
+
+
+def pytest_configure(config):
+    """Ctrl-C as a terminal gives it, however pytest was started: a non-interactive shell starts a background
+    command (`make test &`) with SIGINT ignored, Python keeps that, and every process a test starts inherits
+    it, so the tests of Ctrl-C (an in-process shield, a run interrupted in a child) would see it ignored."""
+    if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 @pytest.fixture(scope="session")

@@ -74,20 +74,14 @@ def test_a_truncated_newest_checkpoint_resumes_from_the_one_before(smoke, capsys
 
 
 def orchestrator(*args: str) -> subprocess.Popen:
-    # The child must not inherit an ignored SIGINT (a pytest that a non-interactive shell started with `&` has
-    # one, and Python then leaves Ctrl-C ignored): a caught signal is reset to its default across exec.
-    before = signal.signal(signal.SIGINT, signal.default_int_handler)
-    try:
-        return subprocess.Popen(
-            [sys.executable, "-m", "orchestrator", *args],
-            cwd=ROOT,
-            env={**os.environ, "PYTHONUNBUFFERED": "1"},
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-            text=True,
-        )
-    finally:
-        signal.signal(signal.SIGINT, before)
+    return subprocess.Popen(
+        [sys.executable, "-m", "orchestrator", *args],
+        cwd=ROOT,
+        env={**os.environ, "PYTHONUNBUFFERED": "1"},
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
 
 
 @pytest.mark.slow
