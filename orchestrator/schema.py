@@ -317,7 +317,7 @@ class RuntimeConfig:
     learner_device: str = "auto"
     # The learners' losses through torch.compile: eager | default | reduce-overhead (CUDA graphs, for a GPU).
     # The first update of each compiles (minutes on a laptop's cores, cached on disk for the next run; see
-    # README, "Learners compiled"); the AMP discriminator's gradient penalty stays eager.
+    # docs/learners.md); the AMP discriminator's gradient penalty stays eager.
     learner_compile: str = "eager"
     # Ray started for the run only: auto gives each component the loop waits on (a method's
     # `Component.own_core`, e.g. ControlVAE's VAE learner) a CPU core of its own and every other actor the

@@ -6,7 +6,7 @@ Left to the scheduler, five busy processes share the cores, the VAE's updates ar
 caches refilled, and the loop runs at the pace of the slowest share. A method names the components the
 loop waits on (`Component.own_core`); with `pin_cores=auto` each of them is given a core of its own and
 every other actor the cores left, so that the critical path never waits for a core (`plan`). Measured on
-2 cores, default run, against the scheduler alone (README, "Learners"): 1.15x the samples per second.
+2 cores, default run, against the scheduler alone (docs/learners.md): 1.15x the samples per second.
 
 Pinning is by the Linux scheduler's CPU affinity (`os.sched_setaffinity`); where there is none (macOS),
 or too few cores to leave one for the rest, nothing is pinned and the log says why.
