@@ -176,6 +176,8 @@ def main() -> None:
             rows.append(one(seed, mode, args.starts, args.iterations))
             r = rows[-1]
             print(f"seed {seed} {mode}: test {r['test']:.3f}, starts {r['starts']:.3f} (after / before)", flush=True)
+            if args.json:  # after every run: a later run that fails or is stopped loses none of these
+                Path(args.json).write_text(json.dumps(rows, indent=1))
     if len(modes) >= 2:
         print("\n".join(summary(rows, modes[0], modes[1], args.margin)))
     if args.json:

@@ -2,6 +2,7 @@
 learning test's, which has its own)."""
 
 import importlib.util
+import json
 from pathlib import Path
 
 import pytest
@@ -40,3 +41,22 @@ def test_seed_ranges():
     assert learning_seeds.seeds("6-9") == [6, 7, 8, 9]
     assert learning_seeds.seeds("0,2,5") == [0, 2, 5]
     assert learning_seeds.seeds("") == []
+
+
+def test_rows_are_written_as_each_run_ends(tmp_path, monkeypatch):
+    """A run that fails after others leaves the finished runs' rows in --json."""
+    done = []
+
+    def one(seed, mode, starts, iterations):
+        if (seed, mode) == (1, "default"):
+            raise SystemExit("learning_seeds: seed 1, default failed")
+        done.append((seed, mode))
+        return {"seed": seed, "mode": mode, "test": 0.3, "starts": 0.3}
+
+    out = tmp_path / "rows.json"
+    monkeypatch.setattr(learning_seeds, "one", one)
+    monkeypatch.setattr("sys.argv", ["learning_seeds.py", "--seeds", "0-1", "--json", str(out)])
+    with pytest.raises(SystemExit):
+        learning_seeds.main()
+    written = json.loads(out.read_text())
+    assert [(r["seed"], r["mode"]) for r in written] == done == [(0, "eager"), (0, "default"), (1, "eager")]
