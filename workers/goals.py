@@ -158,7 +158,8 @@ class SuccessTracker:
 
       vr          PULSE's rule: at every step the tracked points' mean distance to their targets is at most
                   SUCCESS_RADIUS_M (with all_points, every point's distance: stricter); and no fall, a
-                  clause of ours (PULSE's has none)
+                  clause of ours (PULSE's has none; `fall_fails=False` leaves it out, and a fallen body is
+                  then judged by its points' distances alone, as it lies)
       point_goal  every judged goal (in force POINT_GOAL_MIN_S) brought the root within SUCCESS_RADIUS_M
                   of the target horizontally at some step, and no fall
       heading     every judged goal, over its last WINDOW_S: mean heading error < HEADING_TOL_RAD and mean
@@ -174,10 +175,11 @@ class SuccessTracker:
     and no fall); average with np.nanmean.
     """
 
-    def __init__(self, task: str, num_envs: int, control_hz: float, all_points: bool = False):
+    def __init__(self, task: str, num_envs: int, control_hz: float, all_points: bool = False, fall_fails: bool = True):
         if task not in GOAL_DIMS:
             raise ValueError(f"unknown task {task!r}; expected one of {sorted(GOAL_DIMS)}")
         self.task, self.num_envs, self.all_points = task, num_envs, all_points
+        self.fall_fails = fall_fails and task != "height"  # height: lying down is what H = −1 asks
         self.window = max(1, round(WINDOW_S * control_hz))
         min_s = POINT_GOAL_MIN_S if task == "point_goal" else SETTLE_S + WINDOW_S
         self.min_steps = max(1, round(min_s * control_hz))
@@ -194,7 +196,7 @@ class SuccessTracker:
         force during it, whether they fell [M] and whether their goal changes after it [M] (`advance`)."""
         bs_t, goals_t = (torch.as_tensor(np.asarray(a), dtype=torch.float64) for a in (bs, goals))
         terms = {k: v.numpy() for k, v in task_terms(self.task, bs_t, goals_t).items()}
-        if self.task != "height":
+        if self.fall_fails:
             fell = np.asarray(fell, bool)
             self._failed |= fell
             self._judged |= fell

@@ -24,6 +24,7 @@ from orchestrator.world import seed_of
 from workers.demos import DemoSet
 from workers.learners.vae import VAEBatch, VAELearner
 from workers.learners.world_model import WorldModelBatch, WorldModelConfig, WorldModelLearner, build_world_model
+from workers.losses.kl import latent_usage
 from workers.models import body_state
 from workers.models.world_model import WorldModel
 
@@ -153,7 +154,9 @@ class PhysicsVAEActor(OfflineActor):
     def validate(self) -> dict[str, float]:
         """On held-out expert transitions, with z = μ_q(s_t, s_{t+1}): the action error ‖a − a'‖², and the
         simulation layer's next state from the decoder's action against the expert's, ‖s_{t+1} − W(s_t, a')‖²
-        in features (what Eq. 1's α term weighs) and in body positions (m). Measured for every α, 0 included."""
+        in features (what Eq. 1's α term weighs) and in body positions (m). Measured for every α, 0 included.
+        And how the posterior uses its latent there (`workers.losses.kl.latent_usage`): the KL, its share per
+        dimension and the active dimensions, where a collapse under a large β shows."""
         vae = self.learner.vae.eval()
         states, actions = self.demos.windows(self.heldout(), 1)
         tensor = self.learner.tensor
@@ -161,9 +164,13 @@ class PhysicsVAEActor(OfflineActor):
         q, _ = vae.encode(s[:, 0], s[:, 1])
         a = vae.act(s[:, 0], q.mean)
         start = tensor(states[:, 0])
+        usage = latent_usage(q.mean, q.log_std)
         out = {
             "heldout_action_error": float(((a - tensor(actions[:, 0])) ** 2).sum(-1).mean()),
             "heldout_sim_error": float(((self.world_model.next_features(start, a) - s[:, 1]) ** 2).sum(-1).mean()),
+            "heldout_kl": float(usage["kl"]),
+            "latent_active_dims": float(usage["active_dims"]),
+            **{f"latent_kl/{d:02d}": float(v) for d, v in enumerate(usage["kl_per_dim"])},
         }
         if isinstance(self.world_model, WorldModel):  # a regress layer predicts features, not body positions
             nxt = self.world_model(start, a)

@@ -47,6 +47,8 @@ def evaluate_task(
         "eval/time_until_fall_mean": result["time_until_fall_mean"],
         "eval/task_fell": result["fell"],
     }
+    if "success_pulse" in result:  # VR tracking: PULSE's rule alone, without our no-fall clause
+        metrics["eval/task_success_pulse"] = result["success_pulse"]
     metrics.update({f"eval/task_{k}": float(v) for k, v in result["terms"].items()})
     name = "final" if final else f"iter-{iteration:07d}"
     report = {k: v for k, v in result.items() if k not in ("roots", "goals")}

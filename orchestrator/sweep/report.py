@@ -5,11 +5,16 @@
 - `plot_final`: a bar per point and metric, each seed's value as a dot.
 - `plot_curves`: learning curves against environment samples, the mean over seeds
   and a band from the lowest to the highest seed, one panel per metric.
-- `curve_summary`: what a learning curve says in three numbers, for comparing
+- `curve_summary`: what a learning curve says in four numbers, for comparing
   with a paper's words ("fluctuates and is slower"): its final level (mean of the
   last tenth), its roughness (mean absolute change between consecutive logged
-  values, over the range of the curve) and its speed (samples until it first
-  reaches half of its final level above its start).
+  values, over the range of the curve) and its speed, twice: the samples until it first
+  reaches half of its final level above its start (a crossing, resolved only to the
+  iteration it happens in), and the samples it takes to converge, ∫ (final − v(s)) /
+  (final − v(0)) ds over the run (trapezoids over every logged value: τ for an
+  exponential approach v = final·(1 − e^(−s/τ)), s₀ for a step at s₀), which every
+  point of the curve moves, so it resolves a curve that crosses half of its level in the
+  first iterations.
 
 With `facet_by` (a second swept key, e.g. the terrain), each of these groups the runs
 by (facet, compared value): the tables gain a column, `plot_final` a bar per pair and
@@ -168,9 +173,10 @@ def plot_curves(
 
 
 def curve_summary(history: History) -> dict[str, float]:
-    """{final, roughness, samples_to_half} of one learning curve (see the module docstring)."""
+    """{final, roughness, samples_to_half, samples_to_converge} of one learning curve (see the module docstring)."""
     if len(history) < 2:
-        return {"final": float("nan"), "roughness": float("nan"), "samples_to_half": float("nan")}
+        nan = float("nan")
+        return {"final": nan, "roughness": nan, "samples_to_half": nan, "samples_to_converge": nan}
     steps, values = np.asarray(history, float).T
     tail = max(1, len(values) // 10)
     final = float(values[-tail:].mean())
@@ -178,10 +184,13 @@ def curve_summary(history: History) -> dict[str, float]:
     roughness = float(np.mean(np.abs(np.diff(values))) / span)
     half = values[0] + 0.5 * (final - values[0])
     reached = np.flatnonzero(values >= half) if final >= values[0] else np.flatnonzero(values <= half)
+    rise = final - values[0]
+    remaining = (final - values) / rise if rise else np.zeros_like(values)
     return {
         "final": final,
         "roughness": roughness,
         "samples_to_half": float(steps[reached[0]]) if len(reached) else float("nan"),
+        "samples_to_converge": float(np.trapezoid(remaining, steps)) if rise else float("nan"),
     }
 
 
@@ -196,13 +205,13 @@ def curve_table(
     """Per point, the summary of metric `key`'s curves as mean ± std over seeds."""
     columns = [facet_by, compare_by] if facet_by else [compare_by]
     lines = [
-        "| " + " | ".join(columns) + f" | final {label} | roughness | samples to half of final |",
-        "|" + " --- |" * (len(columns) + 3),
+        "| " + " | ".join(columns) + f" | final {label} | roughness | samples to half of final | samples to converge |",
+        "|" + " --- |" * (len(columns) + 4),
     ]
     for point, members in points(rows, compare_by, facet_by).items():
         s = [curve_summary(histories.get(m["run_id"], {}).get(key, [])) for m in members]
         cells = []
-        for k in ("final", "roughness", "samples_to_half"):
+        for k in ("final", "roughness", "samples_to_half", "samples_to_converge"):
             v = np.asarray([x[k] for x in s], float)
             v = v[np.isfinite(v)]
             cells.append(f"{v.mean():.3g} ± {v.std():.2g}" if len(v) else "n/a")

@@ -155,9 +155,11 @@ def test_vr_goals_follow_the_reference_one_step_ahead(character, walk_run):
 
 
 # Success -------------------------------------------------------------------------------------------
-def vr_episode(offsets: np.ndarray, fell_at: int | None = None, all_points: bool = False) -> float:
+def vr_episode(
+    offsets: np.ndarray, fell_at: int | None = None, all_points: bool = False, fall_fails: bool = True
+) -> float:
     """One vr episode of len(offsets) steps, each tracked point `offsets` [T, 3] metres off its target."""
-    tracker = SuccessTracker("vr", 1, HZ, all_points=all_points)
+    tracker = SuccessTracker("vr", 1, HZ, all_points=all_points, fall_fails=fall_fails)
     bs = states(1, root=np.array([[0.5, -0.2, 0.9]]))
     head = bs[0, HEAD, :3] + np.array([0.0, 0.0, 0.175])
     on_target = np.concatenate((head, bs[0, LEFT_HAND, :3], bs[0, RIGHT_HAND, :3]))[None]
@@ -179,7 +181,12 @@ def test_vr_success_is_pulses_mean_distance_rule():
     hand[17, 2] = 0.6  # the right hand alone: mean 0.2 m, PULSE's rule passes, all_points fails
     assert vr_episode(hand) == 1.0
     assert vr_episode(hand, all_points=True) == 0.0
-    assert vr_episode(steps, fell_at=20) == 0.0
+    assert vr_episode(steps, fell_at=20) == 0.0  # our clause: a fall fails
+    # PULSE's rule alone: a fall fails only through the points' distances.
+    assert vr_episode(steps, fell_at=20, fall_fails=False) == 1.0
+    lying = steps.copy()
+    lying[20:] = 1.2  # the body on the ground after its fall: the head far below its target
+    assert vr_episode(lying, fell_at=20, fall_fails=False) == 0.0
     assert SUCCESS_RADIUS_M == 0.5
 
 

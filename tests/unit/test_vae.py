@@ -11,7 +11,7 @@ from torch.distributions import Normal, kl_divergence
 
 from workers.learners.base import Schedule, Weights
 from workers.learners.vae import VAEBatch, VAEConfig, VAELearner
-from workers.losses.kl import gaussian_kl
+from workers.losses.kl import gaussian_kl, latent_usage
 from workers.losses.vae import controlvae_loss, discounts, physicsvae_loss, pulse_loss
 from workers.models.vae import MixtureOfExperts, VAEController
 from workers.models.world_model import WorldModel
@@ -27,6 +27,18 @@ def test_gaussian_kl_matches_torch_distributions():
     zero = torch.zeros(5, 7)
     expected = kl_divergence(Normal(mq, lq.exp()), Normal(zero, 1.0)).sum(-1)
     torch.testing.assert_close(gaussian_kl(mq, lq, zero, zero), expected)
+
+
+def test_latent_usage_sees_a_collapsed_dimension():
+    """Three latent dimensions over a batch of four: the first carries the input (μ = ±1, σ = 0.1), the second
+    is collapsed onto the prior (μ = 0, σ = 1), the third has a constant offset (μ = 0.5, σ = 1). Per dimension,
+    KL = −log σ + (σ² + μ²)/2 − ½: 2.3026 + 0.005 + 0.5 − 0.5 = 2.3076; 0; 0.125. Only the first varies."""
+    mean = torch.tensor([[1.0, 0.0, 0.5], [-1.0, 0.0, 0.5], [1.0, 0.0, 0.5], [-1.0, 0.0, 0.5]])
+    log_std = torch.log(torch.tensor([0.1, 1.0, 1.0])).expand(4, 3)
+    usage = latent_usage(mean, log_std)
+    torch.testing.assert_close(usage["kl_per_dim"], torch.tensor([2.30759, 0.0, 0.125]), atol=1e-4, rtol=0)
+    torch.testing.assert_close(usage["kl"], gaussian_kl(mean, log_std, torch.zeros(3), torch.zeros(3)).mean())
+    assert int(usage["active_dims"]) == 1
 
 
 def test_conditional_prior_kl_is_controlvae_eq11():

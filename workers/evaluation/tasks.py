@@ -12,7 +12,9 @@ supplies the start, and the goals of `vr`).
   T the full length, so that a fall forfeits the rest of the episode; 1 is every goal
   met at every step.
 - `success`: the share of episodes that meet the task's own success rule
-  (`workers.goals.SuccessTracker`), over the episodes it could judge.
+  (`workers.goals.SuccessTracker`), over the episodes it could judge; for VR tracking also
+  `success_pulse`, PULSE's rule as the paper states it, without our no-fall clause (a fallen body is
+  judged by its tracked points' distances as it lies, until every episode has fallen).
 - `style_deviation_deg`: the mean absolute deviation of the applied action from the
   frozen decoder's own action D(s, z) over the steps before a fall, in degrees (the
   helper branch's Δa; exactly 0 without it).
@@ -52,6 +54,8 @@ def evaluate_task_policy(
     trained, policy.config = policy.config, replace(policy.config, change_rate=0.0)
     policy.bind(num_goals, np.random.default_rng(seed), torch.Generator().manual_seed(seed))
     success = SuccessTracker(task, num_goals, config.control_hz)
+    # VR tracking: PULSE's rule as the paper has it, without our no-fall clause, beside ours.
+    pulse = SuccessTracker(task, num_goals, config.control_hz, fall_fails=False) if task == "vr" else None
     steps = max(int(round(seconds * config.control_hz)), 1)
     alive = np.ones(num_goals, bool)
     fell_at = np.full(num_goals, steps)
@@ -80,6 +84,8 @@ def evaluate_task_policy(
             in_force = policy.goals.goals.copy()
             changed = policy.goals.advance(sim, bs)
             success.update(bs, in_force, result.fell & alive, changed & alive)
+            if pulse is not None:
+                pulse.update(bs, in_force, result.fell & alive, changed & alive)
             fell = alive & result.fell
             fell_at[fell] = t + 1
             alive &= ~result.fell
@@ -90,9 +96,14 @@ def evaluate_task_policy(
         policy.stochastic, policy.config = stochastic, trained
     ok = success.result(np.arange(num_goals))
     hz = config.control_hz
+    extra = {}
+    if pulse is not None:
+        pulse_ok = pulse.result(np.arange(num_goals))
+        extra["success_pulse"] = float(np.nanmean(pulse_ok)) if np.isfinite(pulse_ok).any() else float("nan")
     return {
         "return": float((reward_sum / steps).mean()),
         "success": float(np.nanmean(ok)) if np.isfinite(ok).any() else float("nan"),
+        **extra,
         "style_deviation_deg": float(np.degrees(deviation_sum.sum() / max(lived.sum(), 1))),
         "time_until_fall_mean": float(fell_at.mean() / hz),
         "fell": float((fell_at < steps).mean()),
