@@ -204,8 +204,15 @@ class DemosConfig:
     # Length of a rollout: a looping clip is tracked this long, a one-shot clip to its last frame; a
     # rollout also ends where the expert falls.
     seconds: float = 10.0
+    # Whose rollouts: "per_clip", one imitation controller per clip as PhysicsVAE trains them (§5.1.1): each
+    # clip of motion.clips gets its own `algo.needs.expert` stage, trained on that clip alone (mirror off), and
+    # a mirrored clip is driven by its clip's expert mirrored (workers/body/mirror.py); "shared", the one
+    # expert stage trained on every clip (ControlVAE-style multi-clip tracking).
+    experts: str = "per_clip"
 
     def __post_init__(self) -> None:
+        if self.experts not in ("per_clip", "shared"):
+            raise ConfigError(f"algo.demos.experts: expected 'per_clip' or 'shared', got {self.experts!r}")
         if self.rollouts_per_clip < 1:
             raise ConfigError(f"algo.demos.rollouts_per_clip must be at least 1, got {self.rollouts_per_clip}")
         if self.noise < 0:

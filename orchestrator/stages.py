@@ -44,16 +44,15 @@ from typing import Any
 from omegaconf import OmegaConf
 
 from orchestrator import checkpoint
-from orchestrator.compose import CONF_DIR, compose, validate
+from orchestrator.compose import CONF_DIR, compose, find_method, validate
 from orchestrator.provenance import code_version, inputs_digest
 from orchestrator.schema import Config, ConfigError
 from orchestrator.tracking.query import find_finished
 from orchestrator.tracking.uri import redact
-from orchestrator.upstream import Upstream, existing_run, provenance, short_error
+from orchestrator.upstream import RUN_ID, Upstream, existing_run, provenance, short_error
 
 # Trains a stage's config with its resolved upstream stages under its stage hash; returns its run id.
 TrainStage = Callable[[Config, dict[str, Upstream], str], str]
-RUN_ID = re.compile(r"(?:run:)?([0-9a-f]{32})")
 # Keys that do not change what a run produces; runtime keeps only what changes the samples.
 NOT_RESULT = ("run_dir", "progress", "tracking", "resume", "preset", "sweep_seeds", "scale_name", "stage_overrides")
 RUNTIME_RESULT = ("rollout_workers", "envs_per_worker")
@@ -62,6 +61,7 @@ SHARED = (
     "character", "motion", "runtime", "sim", "eval", "tracking", "progress", "preset", "scale_name", "stage_overrides"
 )  # fmt: skip
 SECTIONS_SHARED = ("character", "motion", "runtime", "sim", "eval", "tracking")
+EXPERT_TAG = re.compile(r"^upstream\.(.+\.)?expert(\.\d+)?$")
 
 
 def config_hash(cfg: Config, upstream: dict[str, str] | None = None) -> str:
@@ -112,10 +112,16 @@ def upstream_config(cfg: Config, spec: str, role: str) -> Config:
         raise ConfigError(f"algo.needs.{role} ({spec}): {short_error(e)}") from None
 
 
+def needs_of(cfg: Config) -> dict[str, str]:
+    """Role → spec of every stage `cfg` reads: its `algo.needs` as its method expands them (`Method.needs_of`:
+    the demos stage's one expert per clip)."""
+    return find_method(cfg.algo._target_).needs_of(cfg)
+
+
 def plan(cfg: Config, seen: tuple[str, ...] = ()) -> None:
     """Compose every stage of `cfg`'s chain (ConfigError naming the first spec that cannot be), before any
     stage is looked up or trained; a spec that comes back to one above it is refused too."""
-    for role, spec in cfg.algo.needs.items():
+    for role, spec in needs_of(cfg).items():
         if RUN_ID.fullmatch(spec.strip()):
             continue
         name = spec.split()[0] if spec.split() else spec
@@ -136,9 +142,7 @@ def resolve(cfg: Config, uri: str, workdir: Path, experiment: str, train: TrainS
 
 
 def _resolve(cfg: Config, uri: str, workdir: Path, experiment: str, train: TrainStage, log) -> dict[str, Upstream]:
-    return {
-        role: ensure(role, spec, cfg, uri, workdir, experiment, train, log) for role, spec in cfg.algo.needs.items()
-    }
+    return {role: ensure(role, spec, cfg, uri, workdir, experiment, train, log) for role, spec in needs_of(cfg).items()}
 
 
 def ensure(
@@ -187,7 +191,7 @@ def lineage_tags(upstream: dict[str, Upstream]) -> dict[str, str]:
         tags[f"upstream.{role}.reused"] = str(u.reused).lower()
         tags.update({f"upstream.{role}.{k}": v for k, v in u.provenance.items()})
         tags.update({f"upstream.{role}.{k}": v for k, v in u.lineage.items()})
-    for key, value in list(tags.items()):
-        if key == "upstream.expert" or key.endswith(".expert"):
-            tags["expert_run_id"] = value
+    experts = [v for k, v in tags.items() if EXPERT_TAG.search(k)]
+    if experts:  # one expert, or one per clip (`upstream.demos.expert.0`, ...)
+        tags["expert_run_id"] = ",".join(dict.fromkeys(experts))
     return tags

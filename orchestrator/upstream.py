@@ -28,6 +28,8 @@ from orchestrator.tracking.uri import redact
 from workers.demos import DemoError, DemoSet
 from workers.learners.base import Weights
 
+# A need given as an existing run instead of a stage: run:<id> or the bare 32-digit id.
+RUN_ID = re.compile(r"(?:run:)?([0-9a-f]{32})")
 # The demos stage's artifacts (written by `orchestrator.algos.demos`).
 DEMOS_FILE = "demos/demos.npz"
 MANIFEST_FILE = "demos/manifest.json"

@@ -10,6 +10,7 @@ trajectories whichever process runs the worker.
   clip with z from the posterior q(z | s_t, s̃_{t+1}) or, with probability
   `prior_probability`, from the prior p(z | s_t) at every step; the action is the
   policy's mean plus Gaussian noise of std `action_noise` (σ_π).
+- `ExpertPolicy`: an expert (or one per clip, mirrored on mirrored clips) with action noise: the demos.
 - `GaussianPolicy`: the PPO actor-critic, π(a | o) = N(μ(o), σ²) with fixed σ, acting on
   the observation `obs`: "state" (s, AMP's policy input for single-clip imitation),
   "imitation" (s and the reference's s̃_{t+1}, the tracking expert's) or "mimic" (s and
@@ -284,6 +285,13 @@ class ExpertPolicy(Policy):
     its learner config, "module": its state dict} and, for "ppo", "observation" and "residual". A PPO
     expert acts with its mean (on a residual expert, offset from the reference's next pose); a VAE
     expert (ControlVAE's posterior) with z = μ_q(s, s̃_{t+1}).
+
+    One expert per clip (PhysicsVAE §5.1.1, "per_clip"): {"kind": "per_clip", "experts": [payloads],
+    "clip_expert": [the expert of each library clip], "clip_mirrored": [whether it runs mirrored], "mirror":
+    the character's index maps, `workers.body.mirror.mirror_maps`, where any clip runs mirrored}. An
+    environment is driven by its clip's expert; on a mirrored clip by the original's expert mirrored,
+    M∘π∘M (`workers.body.mirror`): it sees the reflected observation and its offset from the reference is
+    reflected back, which on our symmetric character is the reflection of the original's rollout.
     """
 
     reads_device_states = True
@@ -292,41 +300,94 @@ class ExpertPolicy(Policy):
         if noise < 0:
             raise ValueError(f"noise must be non-negative, got {noise}")
         self.num_bodies, self.action_dim, self.noise = num_bodies, action_dim, noise
-        self.inner: GaussianPolicy | None = None
-        self.controller: torch.nn.Module | None = None
+        self.experts: list[GaussianPolicy | torch.nn.Module] = []
+        self.clip_expert: np.ndarray | None = None  # per library clip; None: one expert for every clip
+        self.clip_mirrored: np.ndarray | None = None
+        self.mirror: tuple[torch.Tensor, ...] | None = None  # observation and action index maps, when mirroring
 
     def to(self, device: torch.device | str) -> ExpertPolicy:
         super().to(device)
-        if self.inner is not None:
-            self.inner.to(self.device)
+        for e in self.experts:
+            e.to(self.device)
+        if self.mirror is not None:
+            self.mirror = tuple(t.to(self.device) for t in self.mirror)
         return self
 
     def networks(self) -> list[torch.nn.Module]:
-        return [] if self.controller is None else [self.controller]
+        return [n for e in self.experts for n in (e.networks() if isinstance(e, GaussianPolicy) else [e])]
+
+    def _build(self, w: dict[str, Any]) -> GaussianPolicy | torch.nn.Module:
+        if w["kind"] == "ppo":
+            module = expert_module(w, self.num_bodies, self.action_dim)
+            return GaussianPolicy(module, w["observation"], w["residual"]).to(self.device)
+        if w["kind"] == "vae":
+            controller = build_controller(self.num_bodies, self.action_dim, w["config"])
+            controller.load_state_dict(w["module"])
+            return controller.eval().requires_grad_(False).to(self.device)
+        raise ValueError(f"unknown expert kind {w['kind']!r}; expected one of {(*EXPERT_KINDS, 'per_clip')}")
 
     def set_weights(self, weights: Weights) -> None:
         w = weights.state
-        if w["kind"] == "ppo":
-            module = expert_module(w, self.num_bodies, self.action_dim)
-            self.inner, self.controller = GaussianPolicy(module, w["observation"], w["residual"]).to(self.device), None
-        elif w["kind"] == "vae":
-            controller = build_controller(self.num_bodies, self.action_dim, w["config"])
-            controller.load_state_dict(w["module"])
-            self.controller, self.inner = controller.eval().requires_grad_(False).to(self.device), None
+        if w["kind"] == "per_clip":
+            self.experts = [self._build(e) for e in w["experts"]]
+            self.clip_expert = np.asarray(w["clip_expert"], int)
+            self.clip_mirrored = np.asarray(w["clip_mirrored"], bool)
+            if self.clip_mirrored.any():
+                self._check_mirrorable(w["mirror"])
         else:
-            raise ValueError(f"unknown expert kind {w['kind']!r}; expected one of {EXPERT_KINDS}")
+            self.experts, self.clip_expert, self.clip_mirrored = [self._build(w)], None, None
         self.version = int(weights.version)
+
+    def _check_mirrorable(self, maps: dict[str, np.ndarray]) -> None:
+        for e in self.experts:
+            if not isinstance(e, GaussianPolicy) or e.obs not in ("state", "imitation"):
+                raise ValueError("only a PPO expert observing s (and the reference's s̃_{t+1}) can be run mirrored")
+        d = len(maps["feature_index"])
+        obs_index = np.concatenate((maps["feature_index"], maps["feature_index"] + d))
+        obs_sign = np.concatenate((maps["feature_sign"], maps["feature_sign"]))
+        arrays = (obs_index, obs_sign.astype(np.float32), maps["action_index"], maps["action_sign"].astype(np.float32))
+        self.mirror = tuple(torch.as_tensor(np.asarray(m)).to(self.device) for m in arrays)
+
+    @torch.no_grad()
+    def _mean(self, expert: GaussianPolicy | torch.nn.Module, sim: Simulator, bs: np.ndarray) -> torch.Tensor:
+        """One expert's deterministic PD targets [M, A] for every environment."""
+        if isinstance(expert, GaussianPolicy):
+            return expert.mean_on_device(sim, bs)
+        s = body_state.features(self.tensor(bs))
+        posterior, _ = expert.encode(s, next_goal(expert.goal, sim, bs).to(self.device))
+        return expert.act(s, posterior.mean)
+
+    @torch.no_grad()
+    def _mirrored_mean(self, expert: GaussianPolicy, sim: Simulator, bs: np.ndarray) -> torch.Tensor:
+        """M∘π∘M: the expert on the reflected observation, its offset reflected back onto this clip's reference."""
+        obs_index, obs_sign, act_index, act_sign = self.mirror
+        obs = expert._observation(sim, bs)
+        offset = expert.module.mean(obs[:, obs_index[: obs.shape[1]]] * obs_sign[: obs.shape[1]])
+        offset = offset[:, act_index] * act_sign
+        return offset + expert._base_action_on(sim) if expert.residual else offset
 
     @torch.no_grad()
     def mean_on_device(self, sim: Simulator, bs: np.ndarray) -> torch.Tensor:
-        """The expert's deterministic PD targets [M, A] on the policy's device."""
-        if self.inner is not None:
-            return self.inner.mean_on_device(sim, bs)
-        if self.controller is None:
+        """The expert's deterministic PD targets [M, A] on the policy's device: each environment its clip's."""
+        if not self.experts:
             raise RuntimeError("the expert has no weights yet")
-        s = body_state.features(self.tensor(bs))
-        posterior, _ = self.controller.encode(s, next_goal(self.controller.goal, sim, bs).to(self.device))
-        return self.controller.act(s, posterior.mean)
+        if self.clip_expert is None:
+            return self._mean(self.experts[0], sim, bs)
+        clip_id = np.asarray(sim.clip_id)
+        which, mirrored = self.clip_expert[clip_id], self.clip_mirrored[clip_id]
+        out = None
+        for k in np.unique(which):
+            for flip in (False, True):
+                rows = np.flatnonzero((which == k) & (mirrored == flip))
+                if not len(rows):
+                    continue
+                e = self.experts[k]
+                mean = self._mirrored_mean(e, sim, bs) if flip else self._mean(e, sim, bs)
+                if out is None:
+                    out = torch.empty_like(mean)
+                index = torch.as_tensor(rows, device=mean.device)
+                out[index] = mean[index]
+        return out
 
     def mean_action(self, sim: Simulator, bs: np.ndarray) -> np.ndarray:
         return self.mean_on_device(sim, bs).cpu().numpy()

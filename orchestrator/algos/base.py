@@ -116,6 +116,12 @@ class Method:
         self.upstream = dict(upstream or {})
         self._loaded: tuple[Character, MotionLibrary] | None = None
 
+    @classmethod
+    def needs_of(cls, cfg: Config) -> dict[str, str]:
+        """Role → spec of the upstream stages a run of `cfg` reads: `algo.needs` as it is, unless a method
+        expands it (the demos stage: one expert per clip)."""
+        return dict(cfg.algo.needs)
+
     def character_and_library(self) -> tuple[Character, MotionLibrary]:
         """This process's own character and motion library, loaded when first asked (for evaluation and
         data balancing on the driver; every component loads its own)."""

@@ -3,16 +3,20 @@
 PhysicsVAE (Sec. 5.1.1) trains on state-action pairs of its imitation experts: ten
 rollouts per clip with Gaussian action noise ε = 0.05. The expert is the upstream
 stage `algo.needs.expert`: a `tracker` run by default (its PPO actor's mean action,
-offset from the reference), or a `controlvae` run (its posterior, z = μ_q). The rollout
+offset from the reference), or a `controlvae` run (its posterior, z = μ_q). With
+`algo.demos.experts=per_clip` (the default, as the paper learns one imitation controller per
+clip) that stage is trained once per clip of `motion.clips`, on that clip alone (roles
+`expert.0`, `expert.1`, ...), and a mirrored clip is driven by its clip's expert mirrored
+(`workers.policies.ExpertPolicy`); `shared` uses one expert for every clip. The rollout
 workers run the episodes (`RolloutWorker.demonstrate`), each from a clip's frame 0, for
 `algo.demos.seconds` on a looping clip or to the last frame of a one-shot clip, ending
 early on a fall.
 
 Outputs (artifacts under `demos/`): `demos.npz` (`workers.demos.DemoSet`: states,
-actions, clip, frame, episode ends) and `manifest.json`: the expert run, the clips,
-counts, and the expert's own quality on these rollouts (time until fall, tracking
-error), which bounds everything trained on them and is reported by every run that uses
-them (`expert/...` metrics).
+actions, clip, frame, episode ends) and `manifest.json`: the expert runs, the clips,
+counts, and the experts' own quality on these rollouts, per clip and over all (time until
+fall, the share that stayed up to the end, tracking error), which bounds everything trained
+on them and is reported by every run that uses them (`expert/...` metrics).
 """
 
 from __future__ import annotations
@@ -26,9 +30,12 @@ from typing import Any
 import numpy as np
 
 from orchestrator.algos.base import Component, Method
-from orchestrator.upstream import DEMOS_FILE, MANIFEST_FILE, expert_weights
+from orchestrator.schema import ConfigError
+from orchestrator.upstream import DEMOS_FILE, MANIFEST_FILE, RUN_ID, Upstream, expert_weights
 from orchestrator.world import evaluation_sim_config
+from workers.body.mirror import mirror_maps
 from workers.demos import DemoSet
+from workers.learners.base import Weights
 from workers.policies import ExpertPolicy
 
 
@@ -36,8 +43,59 @@ class Demos(Method):
     sections = ("demos",)
     needs = ("expert",)
 
+    @classmethod
+    def needs_of(cls, cfg) -> dict[str, str]:
+        """With per-clip experts, the expert stage once per clip (`expert.<i>`), each trained on its clip alone."""
+        needs = dict(cfg.algo.needs)
+        if cfg.algo.demos.experts == "shared":
+            return needs
+        spec = needs.pop("expert")
+        if RUN_ID.fullmatch(spec.strip()):
+            raise ConfigError(
+                f"algo.needs.expert={spec}: one run cannot be every clip's expert under algo.demos.experts=per_clip "
+                "(name a stage, or set algo.demos.experts=shared)"
+            )
+        for i, clip in enumerate(cfg.motion.clips):
+            if any(c.isspace() or c in ",[]" for c in str(clip)):
+                raise ConfigError(
+                    f"motion.clips[{i}]: {clip!r} cannot name a per-clip expert stage (space, comma or [])"
+                )
+            needs[f"expert.{i}"] = f"{spec} motion.clips=[{clip}] motion.mirror=false"
+        return needs
+
     def components(self) -> list[Component]:
         return []
+
+    def experts(self) -> list[Upstream]:
+        """The expert stages, one per clip of motion.clips (per_clip) or one."""
+        if self.cfg.algo.demos.experts == "shared":
+            return [self.upstream["expert"]]
+        return [self.upstream[f"expert.{i}"] for i in range(len(self.cfg.motion.clips))]
+
+    def clip_experts(self) -> tuple[np.ndarray, np.ndarray]:
+        """(the expert of each library clip, whether it runs mirrored): the library holds each clip of
+        motion.clips followed, with motion.mirror, by its mirror."""
+        n = len(self.cfg.motion.clips)
+        if self.cfg.algo.demos.experts == "shared":
+            return np.zeros(n * (2 if self.cfg.motion.mirror else 1), int), np.zeros(0, bool)
+        if self.cfg.motion.mirror:
+            return np.repeat(np.arange(n), 2), np.tile([False, True], n)
+        return np.arange(n), np.zeros(n, bool)
+
+    def expert_weights(self) -> Weights:
+        experts = [expert_weights(up) for up in self.experts()]
+        if self.cfg.algo.demos.experts == "shared":
+            return experts[0]
+        which, mirrored = self.clip_experts()
+        payload = {
+            "kind": "per_clip",
+            "experts": [e.state for e in experts],
+            "clip_expert": which.tolist(),
+            "clip_mirrored": mirrored.tolist(),
+        }
+        if mirrored.any():
+            payload["mirror"] = mirror_maps(self.character)
+        return Weights(max(e.version for e in experts), payload)
 
     @classmethod
     def make_policy(cls, cfg, character) -> ExpertPolicy:
@@ -49,17 +107,21 @@ class Demos(Method):
         return replace(evaluation_sim_config(cfg), threads=cfg.runtime.sim_threads)
 
     def start(self, trainer) -> None:
-        trainer.publish(expert_weights(self.upstream["expert"]))
+        trainer.publish(self.expert_weights())
+
+    def rollout_steps(self) -> np.ndarray:
+        """[clips] control steps of a rollout of each library clip: `seconds` on a looping clip, to its end else."""
+        _, library = self.character_and_library()
+        wanted = max(1, int(round(self.cfg.algo.demos.seconds * self.cfg.character.control_hz)))
+        return np.where(library.loop, wanted, np.minimum(wanted, library.num_frames - 1))
 
     def jobs(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(clip, rollout index, control steps) of every rollout, clip by clip."""
         _, library = self.character_and_library()
         d = self.cfg.algo.demos
-        wanted = max(1, int(round(d.seconds * self.cfg.character.control_hz)))
-        steps = np.where(library.loop, wanted, np.minimum(wanted, library.num_frames - 1))
         clips = np.repeat(np.arange(library.num_clips), d.rollouts_per_clip)
         rollouts = np.tile(np.arange(d.rollouts_per_clip), library.num_clips)
-        return clips, rollouts, steps[clips]
+        return clips, rollouts, self.rollout_steps()[clips]
 
     def step(self, trainer) -> tuple[int, dict[str, float]]:
         rt = trainer.runtime
@@ -84,6 +146,9 @@ class Demos(Method):
         trainer.logger.log_artifact(str(run_dir / MANIFEST_FILE), "demos")
         metrics = {f"demos/{k}": float(v) for k, v in manifest["counts"].items()}
         metrics.update({f"expert/{k}": float(v) for k, v in manifest["expert"].items()})
+        for name, clip in manifest["per_clip"].items():  # each clip's rollouts: stayed up, and tracking error
+            for key in ("stayed_up_fraction", "tracking_error", "seconds_mean"):
+                metrics[f"expert/clip/{name}/{key}"] = float(clip[key])
         metrics["throughput/demos_s"] = time.perf_counter() - t0
         return demos.num_transitions, metrics
 
@@ -91,35 +156,48 @@ class Demos(Method):
         _, library = self.character_and_library()
         hz = self.cfg.character.control_hz
         seconds = demos.episode_length / hz
-        up = self.upstream["expert"]
+        # A rollout stayed up when it ran its full length (10 s on a looping clip, a one-shot clip to its end).
+        full = ~demos.episode_fell & (demos.episode_length >= self.rollout_steps()[demos.episode_clip])
+        experts = self.experts()
+        which, mirrored = self.clip_experts()
         per_clip = {}
         for c, name in enumerate(library.names):
             e = demos.episode_clip == c
+            up = experts[which[c]]
             per_clip[name] = {
+                "expert_run": up.run_id,
+                "mirrored": bool(mirrored[c]) if len(mirrored) else False,
                 "episodes": int(e.sum()),
                 "transitions": int(demos.episode_length[e].sum()),
                 "fell": int(demos.episode_fell[e].sum()),
+                "stayed_up_fraction": float(full[e].mean()),
                 "seconds_mean": float(seconds[e].mean()),
                 "tracking_error": float(demos.episode_tracking_error[e].mean()),
             }
-        expert_eval = {k.removeprefix("eval/"): v for k, v in up.metrics().items() if k.startswith("eval/")}
+        own = {}
+        for up in experts:
+            own.update({k.removeprefix("eval/"): v for k, v in up.metrics().items() if k.startswith("eval/")})
         fell = demos.episode_fell
         return {
-            "expert_run": up.run_id,
-            "expert_algo": up.name,
-            "expert_stage_hash": up.stage_hash,
+            "expert_run": experts[0].run_id if len(experts) == 1 else None,
+            "expert_runs": [up.run_id for up in experts],
+            "experts": self.cfg.algo.demos.experts,
+            "expert_algo": experts[0].name,
+            "expert_stage_hash": experts[0].stage_hash if len(experts) == 1 else None,
             "clips": list(library.names),
             "rollouts_per_clip": self.cfg.algo.demos.rollouts_per_clip,
             "noise": self.cfg.algo.demos.noise,
             "seconds": self.cfg.algo.demos.seconds,
             "counts": {"episodes": demos.num_episodes, "transitions": demos.num_transitions},
-            # The expert with the noise, on these rollouts: seconds until it fell (rollouts that did not
-            # fall count their full length), the share that fell, and its tracking error.
+            # The experts with the noise, on these rollouts: seconds until they fell (rollouts that did not
+            # fall count their full length), the share that fell, the share that stayed up to the end, and the
+            # tracking error; with one expert, its own evaluation too (own/...).
             "expert": {
                 "time_until_fall_mean": float(seconds.mean()),
                 "fell_fraction": float(fell.mean()),
+                "stayed_up_fraction": float(full.mean()),
                 "tracking_error_mean": float(demos.episode_tracking_error.mean()),
-                **{f"own/{k}": float(v) for k, v in expert_eval.items() if "/" not in k},
+                **({f"own/{k}": float(v) for k, v in own.items() if "/" not in k} if len(experts) == 1 else {}),
             },
             "per_clip": per_clip,
         }

@@ -6,6 +6,7 @@ again (reused, or not), break its artifacts, and train PhysicsVAE on its data.
 
 from __future__ import annotations
 
+import ast
 import dataclasses
 import json
 import shutil
@@ -173,7 +174,7 @@ def test_ablation_alpha_smoke_gives_a_parent_with_a_child_per_point_the_stages_a
     assert len(runs_of(store, "tracker")) == 1 and len(runs_of(store, "world_model")) == 1
     expert = runs_of(store, "tracker")[0].info.run_id
     assert {c.data.tags["expert_run_id"] for c in children} == {expert}
-    assert parent.data.tags["upstream.demos.expert"] == expert  # the parent links every stage it used
+    assert parent.data.tags["upstream.demos.expert.0"] == expert  # the parent links every stage it used (one per clip)
     assert parent.data.tags["upstream.world_model"] == runs_of(store, "world_model")[0].info.run_id
     assert all(c.data.tags["upstream.world_model.reused"] == "true" for c in children)
     artifacts = {a.path for a in client.list_artifacts(parent.info.run_id)}
@@ -242,3 +243,26 @@ def test_a_controlvae_posterior_can_be_the_expert(pipeline):
     demos, manifest = load_demos(up)
     assert manifest["expert_algo"] == "controlvae" and demos.num_episodes == 2
     assert np.isfinite(demos.actions).all() and manifest["expert"]["tracking_error_mean"] > 0
+
+
+def test_per_clip_experts_one_stage_per_clip_and_the_mirrors_run_mirrored(tmp_path):
+    """algo.demos.experts=per_clip (the default) on walk and run, mirrored: one tracker stage per clip, each
+    trained on its clip alone, and the demos of all four clips, each mirror's by its clip's expert mirrored;
+    the manifest says whose every clip's rollouts are, and how many stayed up."""
+    uri = f"sqlite:///{tmp_path / 'store.db'}"
+    cfg = smoke_config(tmp_path / "demos", "algo=demos", f"tracking.uri={uri}", "motion=locomotion",
+                       "motion.clips=[humanoid3d_walk,humanoid3d_run]")  # fmt: skip
+    assert set(stages.needs_of(cfg)) == {"expert.0", "expert.1"}
+    run(cfg)
+    clips = {r.info.run_id: ast.literal_eval(r.data.params["motion.clips"]) for r in runs_of(uri, "tracker")}
+    trackers = {names[0]: run_id for run_id, names in clips.items() if len(names) == 1}
+    assert sorted(trackers) == ["humanoid3d_run", "humanoid3d_walk"]
+    demos = runs_of(uri, "demos")[0]
+    manifest = json.loads((tmp_path / "demos" / "demos" / "manifest.json").read_text())
+    per_clip = manifest["per_clip"]
+    assert list(per_clip) == ["humanoid3d_walk", "humanoid3d_walk_mirror", "humanoid3d_run", "humanoid3d_run_mirror"]
+    for name, clip in per_clip.items():
+        assert clip["expert_run"] == trackers[name.removesuffix("_mirror")]
+        assert clip["mirrored"] == name.endswith("_mirror") and 0.0 <= clip["stayed_up_fraction"] <= 1.0
+    assert set(demos.data.tags["expert_run_id"].split(",")) == set(trackers.values())
+    assert "expert/clip/humanoid3d_run_mirror/tracking_error" in demos.data.metrics

@@ -94,3 +94,39 @@ def test_a_broken_demos_file_is_refused_with_its_name(tmp_path, character, walk_
     np.savez(tmp_path / "partial.npz", **arrays)
     with pytest.raises(DemoError, match="partial.npz: no array 'done'"):
         DemoSet.load(tmp_path / "partial.npz")
+
+
+def test_a_clips_expert_run_mirrored_on_its_mirror_gives_the_reflected_rollout(character, clip_cache):
+    """One expert per clip, the mirrored clip driven by the original's expert mirrored (M∘π∘M): without noise,
+    from frame 0, the mirror's rollout is the original's reflected, body by body and action by action (MuJoCo
+    steps our symmetric character into the exact reflection), so the mirrored expert tracks the mirrored clip
+    exactly as well. A lopsided expert (random weights, offsets of ~0.1 rad) makes the check non-trivial."""
+    from workers.body.mirror import FLIP_XZ, FLIP_Y, action_mirror, mirror_maps
+    from workers.motion.library import MotionLibrary
+
+    library = MotionLibrary.load(character, ["humanoid3d_walk"], fps=30, mirror=True, cache_dir=clip_cache)
+    torch.manual_seed(3)
+    module = build_actor_critic(2 * StateLayout(character.num_bodies).dim, character.num_actions, PPO)
+    with torch.no_grad():
+        module.policy[-1].weight.mul_(300.0)  # the output layer starts at 0.01 scale: offsets of ~0.1 rad
+    one = {"kind": "ppo", "config": PPO, "observation": "imitation", "residual": True, "module": module.state_dict()}
+    payload = {"kind": "per_clip", "experts": [one], "clip_expert": [0, 0], "clip_mirrored": [False, True]}
+    payload["mirror"] = mirror_maps(character)
+    policy = ExpertPolicy(character.num_bodies, character.num_actions, noise=0.0)
+    worker = RolloutWorker(character, library, 2, policy, SimConfig(), seed=0)
+    worker.set_weights(Weights(1, payload))
+    plain, mirrored = worker.demonstrate(np.array([0, 1]), np.array([20, 20]))
+    steps = min(len(plain["actions"]), len(mirrored["actions"]))
+    assert steps >= 10
+    index, sign = action_mirror(character)
+    offsets = plain["actions"][:steps] - character.qpos_to_action(
+        library.state(np.zeros(steps, int), np.arange(1, steps + 1)).qpos
+    )
+    assert np.abs(offsets).max() > 0.05  # the expert does act on its own
+    np.testing.assert_allclose(mirrored["actions"][:steps], plain["actions"][:steps, index] * sign, atol=1e-4)
+    perm = character.body_mirror_perm()
+    a, b = plain["states"][: steps + 1], mirrored["states"][: steps + 1]
+    np.testing.assert_allclose(b[..., 0:3], a[:, perm, 0:3] * FLIP_Y, atol=1e-4)
+    np.testing.assert_allclose(b[..., 3:7], a[:, perm, 3:7] * np.array([1.0, -1.0, 1.0, -1.0]), atol=1e-4)
+    np.testing.assert_allclose(b[..., 10:13], a[:, perm, 10:13] * FLIP_XZ, atol=1e-3)
+    assert plain["tracking_error"] == pytest.approx(mirrored["tracking_error"], abs=1e-5)

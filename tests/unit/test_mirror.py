@@ -25,7 +25,8 @@ import pytest
 import torch
 
 from workers.body import rotations as rot
-from workers.body.features import StateLayout, state_features
+from workers.body.features import state_features
+from workers.body.mirror import FLIP_XZ, FLIP_Y, action_mirror, feature_mirror
 from workers.evaluation.controller import tracking_error
 from workers.models import body_state
 from workers.motion.clip import mirror_qpos
@@ -36,8 +37,6 @@ from workers.types import KinState
 # conf/motion/locomotion.yaml's clips.
 LOCOMOTION = ["humanoid3d_walk", "humanoid3d_run", "walker/turn_left0", "walker/turn_left1"]
 LOCOMOTION += ["walker/turn_right0", "walker/turn_right1"]
-FLIP_Y = np.array([1.0, -1.0, 1.0])  # a polar vector under the reflection
-FLIP_XZ = np.array([-1.0, 1.0, -1.0])  # a pseudovector (angular velocity, rotation vector)
 
 
 @pytest.fixture(scope="module")
@@ -60,37 +59,9 @@ def mirror_kin(character, s: KinState) -> KinState:
 
 
 def mirror_features(character, s: np.ndarray) -> np.ndarray:
-    """s [N, D] of the reflected state, from s of the original."""
-    n, b = s.shape[0], character.num_bodies
-    layout, perm = StateLayout(b), character.body_mirror_perm()
-
-    def per_body(part: slice, width: int) -> np.ndarray:
-        return s[:, part].reshape(n, b, width)[:, perm]
-
-    rot6 = per_body(layout.rot, 6)
-    # Columns of M R M: M R e_x = M (column 0), M R e_y = -M (column 1).
-    rot6 = np.concatenate((rot6[..., :3] * FLIP_Y, -rot6[..., 3:] * FLIP_Y), axis=-1)
-    parts = (
-        per_body(layout.pos, 3) * FLIP_Y,
-        rot6,
-        per_body(layout.lin_vel, 3) * FLIP_Y,
-        per_body(layout.ang_vel, 3) * FLIP_XZ,
-    )
-    rest = (s[:, layout.height][:, perm], s[:, layout.up] * FLIP_Y)
-    return np.concatenate([p.reshape(n, -1) for p in parts] + list(rest), axis=1)
-
-
-def action_mirror(character) -> tuple[np.ndarray, np.ndarray]:
-    """(perm, sign) [A] with mirrored action = action[..., perm] * sign."""
-    perm, sign = np.zeros(character.num_actions, int), np.ones(character.num_actions)
-    for j, src in enumerate(character.joint_mirror_perm()):
-        dst, from_ = character.joint_dof[j], character.joint_dof[src]
-        width = dst.stop - dst.start
-        dst_act = np.arange(width) + dst.start - character.root_dofs
-        perm[dst_act] = np.arange(width) + from_.start - character.root_dofs
-        if character.joint_types[j] == "ball":
-            sign[dst_act] = FLIP_XZ
-    return perm, sign
+    """s [N, D] of the reflected state, from s of the original (`workers.body.mirror.feature_mirror`)."""
+    index, sign = feature_mirror(character)
+    return s[..., index] * sign
 
 
 # ----------------------------------------------------------------------------
