@@ -229,8 +229,15 @@ class OfflineConfig:
     decay_every: int = 50
     # Rollouts of each clip held out of training (the last ones) for the held-out metrics.
     holdout_rollouts: int = 1
+    # The updates' arithmetic: "float32", or "bfloat16" (torch.autocast: the matmuls in bfloat16, the weights,
+    # the optimiser and the losses' sums in float32; 1.6x an update on a CPU with bfloat16 GEMMs). It changes the
+    # numbers, so it is part of the stage's hash, and it ships only where a paired study shows that it does not
+    # change what the stages learn (docs/physicsvae.md).
+    precision: str = "float32"
 
     def __post_init__(self) -> None:
+        if self.precision not in ("float32", "bfloat16"):
+            raise ConfigError(f"algo.offline.precision: expected 'float32' or 'bfloat16', got {self.precision!r}")
         if not 0 < self.lr_decay <= 1:
             raise ConfigError(f"algo.offline.lr_decay must be in (0, 1], got {self.lr_decay}")
         if self.decay_every < 1 or self.holdout_rollouts < 0:

@@ -3,10 +3,12 @@
 Each is built with the upstream stages it reads (`orchestrator.upstream.Upstream`, small), and
 downloads the demos (and the frozen layer) from the tracking store itself, so that a
 restarted actor, or one on another node, needs nothing from the driver. It splits the
-episodes into training and held-out rollouts (`algo.offline.holdout_rollouts`), and
-trains one epoch per `train_epoch` call: as many updates as it takes for the batches to
-cover the training transitions once, at the epoch's learning rate (×`lr_decay` every
-`decay_every` epochs, PhysicsVAE's schedule). `validate` measures the held-out rollouts.
+episodes into training and held-out rollouts (`algo.offline.holdout_rollouts`), computes
+the features s of every stored state once (the dataset fixes them; each batch takes its
+windows' rows), and trains one epoch per `train_epoch` call: as many updates as it takes for
+the batches to cover the training transitions once, at the epoch's learning rate
+(×`lr_decay` every `decay_every` epochs, PhysicsVAE's schedule), in `algo.offline.precision`.
+`validate` measures the held-out rollouts (in float32).
 """
 
 from __future__ import annotations
@@ -45,6 +47,12 @@ class OfflineActor(LearnerActor):
             raise ValueError(f"the demos hold no training window of {self.window} transitions")
         self.rng = np.random.default_rng(seed_of(cfg, key + 1))
         self.epoch = 0
+        with torch.no_grad():
+            self.features = body_state.features(torch.from_numpy(self.demos.states))  # [S, D], once
+
+    def window_features(self, starts: np.ndarray) -> torch.Tensor:
+        """s [N, window+1, D] of the windows at `starts`, from the features computed once."""
+        return self.features[torch.from_numpy(starts[:, None] + np.arange(self.window + 1))]
 
     @property
     def batch_size(self) -> int:
@@ -60,9 +68,12 @@ class OfflineActor(LearnerActor):
             group["lr"] = lr
         updates = max(1, math.ceil(len(self.train_starts) / self.batch_size))  # one pass over the windows
         metrics = []
+        bfloat16 = off.precision == "bfloat16"
         for _ in range(updates):
             starts = self.rng.choice(self.train_starts, size=self.batch_size)
-            metrics.append(self.learner.update(self.batch(starts)))
+            batch = self.batch(starts)
+            with torch.autocast(self.learner.device.type, dtype=torch.bfloat16, enabled=bfloat16):
+                metrics.append(self.learner.update(batch))
         self.epoch += 1
         out = self.report(metrics)
         out["epoch"] = float(self.epoch)
@@ -101,7 +112,7 @@ class SimulationLayerActor(OfflineActor):
 
     def batch(self, starts: np.ndarray) -> WorldModelBatch:
         states, actions = self.demos.windows(starts, self.window)
-        return WorldModelBatch(torch.from_numpy(states), torch.from_numpy(actions))
+        return WorldModelBatch(torch.from_numpy(states), torch.from_numpy(actions), self.window_features(starts))
 
     @torch.no_grad()
     def validate(self) -> dict[str, float]:
@@ -148,7 +159,9 @@ class PhysicsVAEActor(OfflineActor):
 
     def batch(self, starts: np.ndarray) -> VAEBatch:
         states, actions = self.demos.windows(starts, self.window)
-        return VAEBatch(torch.from_numpy(states), actions=torch.from_numpy(actions))
+        return VAEBatch(
+            torch.from_numpy(states), actions=torch.from_numpy(actions), features=self.window_features(starts)
+        )
 
     @torch.no_grad()
     def validate(self) -> dict[str, float]:

@@ -84,3 +84,64 @@ def test_a_regress_layer_trains_and_physicsvae_learns_through_it(walk_run, tmp_p
     assert out["heldout_sim_error"] > 0 and "heldout_next_pos_error" not in out
     with pytest.raises(ValueError, match="integrating world model"):
         VAELearner(15, 28, VAEConfig(encoder_hidden=(8,), policy_hidden=(8,)), world_model=layer.learner.model)
+
+
+def _twins(walk_run, tmp_path, **offline):
+    """A regress layer's actor and a PhysicsVAE actor (α > 0, through that layer), seeded alike."""
+    demos = walk_demos(walk_run, episodes=6)
+    regress = {"kind": "regress", "hidden": (32,), "activation": "relu", "batch_size": 32}
+    cfg = small("world_model", tmp_path, world_model=regress)
+    cfg = dataclasses.replace(
+        cfg, algo=dataclasses.replace(cfg.algo, offline=dataclasses.replace(cfg.algo.offline, **offline))
+    )
+    torch.manual_seed(0)
+    layer = SimulationLayerActor(cfg, demos, 15, 28)
+    pv = small(
+        "physicsvae", tmp_path, vae={"encoder_hidden": (8,), "policy_hidden": (8,), "batch_size": 32, "alpha": 1e-2}
+    )
+    pv = dataclasses.replace(
+        pv, algo=dataclasses.replace(pv.algo, offline=dataclasses.replace(pv.algo.offline, **offline))
+    )
+    torch.manual_seed(0)
+    vae = PhysicsVAEActor(pv, demos, 15, 28, (cfg.algo.world_model, layer.learner.model.state_dict()))
+    return layer, vae
+
+
+def test_the_features_computed_once_give_the_updates_computed_per_batch(walk_run, tmp_path):
+    """Each offline actor computes s of the whole dataset once and hands each batch its windows' rows: the
+    layer's and the VAE's updates are those the learners make from the body states themselves (to float
+    rounding), for the normaliser, the encoder and the layer's input alike."""
+    for actor in _twins(walk_run, tmp_path):
+        starts = actor.rng.choice(actor.train_starts, size=actor.batch_size)
+        batch = actor.batch(starts)
+        assert batch.features is not None
+        twin = type(batch)(**{**vars(batch), "features": None})
+        torch.manual_seed(1)
+        learner = actor.learner
+        state = {k: v.clone() for k, v in learner.module.state_dict().items()}
+        opt = learner.optimizer.state_dict()
+        if hasattr(learner, "generator"):
+            gen = learner.generator.get_state()
+        first = learner.update(batch)
+        after = {k: v.clone() for k, v in learner.module.state_dict().items()}
+        learner.module.load_state_dict(state)
+        learner.optimizer.load_state_dict(opt)
+        if hasattr(learner, "generator"):
+            learner.generator.set_state(gen)
+        second = learner.update(twin)
+        assert first == pytest.approx(second, rel=1e-5, abs=1e-7)
+        for k, v in learner.module.state_dict().items():
+            torch.testing.assert_close(v, after[k], rtol=1e-5, atol=1e-6)
+
+
+def test_bfloat16_updates_keep_float32_weights_and_stay_close(walk_run, tmp_path):
+    """algo.offline.precision=bfloat16: an epoch's matmuls in bfloat16 under autocast, the weights and the
+    optimiser in float32; its losses are not float32's (it changes the numbers: hence its paired study) but
+    within a few per cent of them after one epoch from the same start."""
+    plain = [a.train_epoch() for a in _twins(walk_run, tmp_path / "fp32")]
+    low = _twins(walk_run, tmp_path / "bf16", precision="bfloat16")
+    half = [a.train_epoch() for a in low]
+    for a in low:
+        assert {p.dtype for p in a.learner.module.parameters()} == {torch.float32}
+    for f, b in zip(plain, half, strict=True):
+        assert b["loss"] != f["loss"] and b["loss"] == pytest.approx(f["loss"], rel=0.05)

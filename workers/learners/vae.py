@@ -138,6 +138,9 @@ class VAEBatch:
     actions: torch.Tensor | np.ndarray | None = None
     # [k, B, 13] states that feed the state normaliser instead of `states` (single-state starts).
     norm_states: torch.Tensor | np.ndarray | None = None
+    # [N, T+1, D] the features s of `states`, where the caller has them (physicsvae: a fixed dataset computes them
+    # once); None computes them here.
+    features: torch.Tensor | np.ndarray | None = None
 
 
 def state_weight_vector(num_bodies: int, weights: dict[str, float]) -> torch.Tensor:
@@ -212,8 +215,11 @@ class VAELearner(Learner):
         return self.config.beta(self.version)
 
     def before_update(self, batch: VAEBatch) -> None:
-        states = batch.states if batch.norm_states is None else batch.norm_states
-        self.vae.state_norm.update(body_state.features(self.tensor(states)))
+        if batch.norm_states is None and batch.features is not None:
+            self.vae.state_norm.update(self.tensor(batch.features))
+        else:
+            states = batch.states if batch.norm_states is None else batch.norm_states
+            self.vae.state_norm.update(body_state.features(self.tensor(states)))
         if self.vae.goal_norm is not None:  # the goals the pulse objective will give the posterior
             self.vae.goal_norm.update(self._goals(self.tensor(batch.states), self.tensor(batch.reference)))
 
@@ -234,7 +240,8 @@ class VAELearner(Learner):
         if objective == "controlvae":
             total, terms = self._controlvae(states, self.tensor(batch.reference), randn, beta)
         elif objective == "physicsvae":
-            total, terms = self._physicsvae(states, self.tensor(batch.actions), randn, beta)
+            features = None if batch.features is None else self.tensor(batch.features)
+            total, terms = self._physicsvae(states, self.tensor(batch.actions), randn, beta, features)
         else:
             total, terms = self._pulse(states, self.tensor(batch.reference), self.tensor(batch.actions), randn, beta)
         terms["beta"] = torch.as_tensor(beta)
@@ -278,12 +285,12 @@ class VAELearner(Learner):
             c.w_a2,
         )
 
-    def _physicsvae(self, states: torch.Tensor, expert_actions: torch.Tensor, randn, beta):
-        s = body_state.features(states)  # [N, T+1, D]
+    def _physicsvae(self, states: torch.Tensor, expert_actions: torch.Tensor, randn, beta, features=None):
+        s = body_state.features(states) if features is None else features  # [N, T+1, D]
         q, p = self.vae.encode(s[:, :-1], s[:, 1:])
         a = self.vae.act(s[:, :-1], q.rsample(eps=randn(q.mean.shape)))
         if self.config.alpha > 0:
-            predicted_next = self.world_model.next_features(states[:, :-1], a)
+            predicted_next = self.world_model.next_features(states[:, :-1], a, s[:, :-1])
         else:
             predicted_next = s[:, 1:]
         kl = gaussian_kl(q.mean, q.log_std, p.mean, p.log_std)

@@ -61,10 +61,12 @@ def build_world_model(
 
 @dataclass
 class WorldModelBatch:
-    """Recorded trajectories: body states [N, T+1, B, 13] and the actions between them [N, T, A]."""
+    """Recorded trajectories: body states [N, T+1, B, 13] and the actions between them [N, T, A]; `features`
+    [N, T+1, D], the states' s, where the caller has them (a fixed dataset computes them once)."""
 
     states: torch.Tensor
     actions: torch.Tensor
+    features: torch.Tensor | None = None
 
 
 class WorldModelLearner(Learner):
@@ -97,9 +99,8 @@ class WorldModelLearner(Learner):
     def loss(self, batch: WorldModelBatch) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         states, actions = self._tensors(batch)
         if self.config.kind == "regress":
-            return regression_loss(
-                self.model.next_features(states[:, :-1], actions), body_state.features(states[:, 1:])
-            )
+            s = body_state.features(states) if batch.features is None else self.tensor(batch.features)
+            return regression_loss(self.model.next_features(states[:, :-1], actions, s[:, :-1]), s[:, 1:])
         predicted = self.model.rollout(states[:, 0], actions)
         return world_model_loss(predicted, states[:, 1:], self.config.weights)
 

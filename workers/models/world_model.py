@@ -64,9 +64,9 @@ class WorldModel(nn.Module):
         """The next body state [..., B, 13] (`s`: bs's features, if known; see `delta`)."""
         return body_state.integrate(bs, self.delta(bs, action, s), self.dt, self.integrator)
 
-    def next_features(self, bs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
-        """s′ [..., D]: the features of the next body state."""
-        return body_state.features(self(bs, action))
+    def next_features(self, bs: torch.Tensor, action: torch.Tensor, s: torch.Tensor | None = None) -> torch.Tensor:
+        """s′ [..., D]: the features of the next body state (`s`: bs's features, if known)."""
+        return body_state.features(self(bs, action, s))
 
     def rollout(self, bs0: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
         """Open-loop prediction [N, T, B, 13] from start states [N, B, 13] under actions [N, T, A]."""
@@ -92,6 +92,7 @@ class StateRegressor(nn.Module):
     def observe(self, bs: torch.Tensor, action: torch.Tensor, bs_next: torch.Tensor) -> None:
         """Nothing to gather: the authors' layer reads its inputs as they are."""
 
-    def next_features(self, bs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
-        """s′ [..., D] from body states [..., B, 13] and actions [..., A]."""
-        return self.net(torch.cat((body_state.features(bs), action), dim=-1))
+    def next_features(self, bs: torch.Tensor, action: torch.Tensor, s: torch.Tensor | None = None) -> torch.Tensor:
+        """s′ [..., D] from body states [..., B, 13] and actions [..., A] (`s`: bs's features, if known)."""
+        s = body_state.features(bs) if s is None else s
+        return self.net(torch.cat((s, action), dim=-1))
