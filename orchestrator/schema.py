@@ -126,6 +126,10 @@ class LoopConfig:
     checkpoint_keep: int = 3
     # Iterations between evaluations (and at the end); 0: only at the end.
     eval_every: int = 0
+    # The wall minutes one run of this method takes at this scale, measured on a 2-core machine (this project's
+    # CI machine; conf/algo_scale/*_cpu.yaml says when); 0: not measured. A sweep adds up the stages it has to
+    # train and its points and prints the expected time before it starts (orchestrator.stages.expected_time).
+    expected_minutes: float = 0.0
     # A budget in wall time as well: the run ends (evaluated and checkpointed as at its last
     # iteration) once this many minutes have passed, if `iterations` have not ended it first; 0: none.
     max_minutes: float = 0.0

@@ -182,6 +182,49 @@ def ensure(
     return Upstream(role, up.algo.name, new_id, h, uri, cache, False, lineage, provenance(role, uri, new_id))
 
 
+def pending(cfg: Config, uri: str, experiment: str) -> list[Config]:
+    """The stages of `cfg`'s chain that `resolve` would train now: those no FINISHED run with their hash holds in
+    a trusted experiment, upstream first, each once."""
+    trusted, todo, seen = trusted_experiments(cfg, experiment), [], set()
+
+    def hashes_above(c: Config) -> dict[str, str]:
+        above = {}
+        for role, spec in needs_of(c).items():
+            given = RUN_ID.fullmatch(spec.strip())
+            if given:
+                above[role] = given.group(1)
+                continue
+            up = upstream_config(c, spec, role)
+            above[role] = h = config_hash(up, hashes_above(up))
+            if h not in seen and not find_finished(uri, h, trusted):
+                todo.append(up)
+            seen.add(h)
+        return above
+
+    hashes_above(cfg)
+    return todo
+
+
+def expected_time(cfg: Config, uri: str, experiment: str, points: int = 1, jobs: int = 1) -> str:
+    """One line: the minutes a run (or sweep) of `cfg` is expected to take on a 2-core machine, from each method's
+    measured `algo.loop.expected_minutes`: the stages it has to train, one at a time, then `points` runs of `cfg`,
+    `jobs` at a time."""
+    todo = pending(cfg, uri, experiment)
+    counts: dict[str, list[float]] = {}
+    for up in todo:
+        counts.setdefault(up.algo.name, []).append(up.algo.loop.expected_minutes)
+    rounds = -(-points // max(jobs, 1))
+    parts = [f"{len(m)} {name} stage{'s' * (len(m) > 1)} {sum(m):.0f} min" for name, m in counts.items()]
+    point = cfg.algo.loop.expected_minutes
+    parts.append(f"{points} run{'s' * (points > 1)} of {cfg.algo.name}, {jobs} at a time, {rounds * point:.0f} min")
+    unknown = [n for n, m in counts.items() if not all(m)] + ([cfg.algo.name] if not point else [])
+    total = sum(sum(m) for m in counts.values()) + rounds * point
+    said = f"expected time on a 2-core machine: about {total:.0f} min ({'; '.join(parts)})"
+    if unknown:
+        said += f"; not measured at scale {cfg.scale_name}: {', '.join(dict.fromkeys(unknown))}"
+    return said
+
+
 def lineage_tags(upstream: dict[str, Upstream]) -> dict[str, str]:
     """Tags that say which stages a run used: upstream.<role>[.<role>...] = run id, where each stage it used
     directly came from (upstream.<role>.experiment, .user, .git_commit), and expert_run_id."""

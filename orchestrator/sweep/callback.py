@@ -49,6 +49,14 @@ def runs_in_parallel(config: DictConfig) -> bool:
     return launcher.get("_target_", SEQUENTIAL_LAUNCHER) != SEQUENTIAL_LAUNCHER
 
 
+def sweep_points(config: DictConfig) -> int:
+    """How many runs the multirun's sweeper makes: the product of its swept values' counts."""
+    n = 1
+    for value in (config.hydra.sweeper.get("params") or {}).values():
+        n *= len(str(value).split(","))
+    return n
+
+
 def parent_of(sweep_dir: str | Path) -> dict[str, str] | None:
     """The parent run's id and store for jobs of a multirun (None outside one)."""
     path = Path(sweep_dir) / SWEEP_FILE
@@ -169,6 +177,8 @@ class SweepCallback(Callback):
         plain["run_dir"] = str(self.sweep_dir)
         try:
             cfg = validate(plain)
+            jobs = int(config.hydra.launcher.get("n_jobs") or 1) if runs_in_parallel(config) else 1
+            print("sweep: " + stages.expected_time(cfg, uri, experiment, sweep_points(config), jobs), flush=True)
             upstream = stages.resolve(cfg, uri, self.sweep_dir, experiment, train_stage) if cfg.algo.needs else {}
         except Exception:
             self.logger.close("FAILED")

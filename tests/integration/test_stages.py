@@ -266,3 +266,31 @@ def test_per_clip_experts_one_stage_per_clip_and_the_mirrors_run_mirrored(tmp_pa
         assert clip["mirrored"] == name.endswith("_mirror") and 0.0 <= clip["stayed_up_fraction"] <= 1.0
     assert set(demos.data.tags["expert_run_id"].split(",")) == set(trackers.values())
     assert "expert/clip/humanoid3d_run_mirror/tracking_error" in demos.data.metrics
+
+
+def _minutes(cfg, minutes: float):
+    """`cfg` with its run's measured minutes set."""
+    loop = dataclasses.replace(cfg.algo.loop, expected_minutes=minutes)
+    return dataclasses.replace(cfg, algo=dataclasses.replace(cfg.algo, loop=loop))
+
+
+def test_a_sweep_says_what_it_will_train_and_how_long_it_should_take(pipeline, tmp_path):
+    """stages.pending lists what resolve would train (every stage of an empty store, each once, upstream first;
+    nothing of a store that holds them) and expected_time adds their measured minutes to the points'."""
+    from unittest import mock
+
+    clips = "motion.clips=[humanoid3d_walk,humanoid3d_run]"
+    cfg = smoke_config(tmp_path / "pv", "algo=physicsvae", "motion=locomotion", clips)
+    empty = f"sqlite:///{tmp_path / 'empty.db'}"
+    todo = stages.pending(cfg, empty, "default")
+    assert [c.algo.name for c in todo] == ["tracker", "tracker", "demos", "world_model"]
+    assert [c.motion.clips for c in todo[:2]] == [["humanoid3d_walk"], ["humanoid3d_run"]]
+    minutes = {"tracker": 20.0, "demos": 1.0, "world_model": 5.0}
+    with mock.patch.object(stages, "pending", return_value=[_minutes(c, minutes[c.algo.name]) for c in todo]):
+        said = stages.expected_time(_minutes(cfg, 10.0), empty, "default", points=6, jobs=2)
+    # 2 x 20 + 1 + 5 for the stages, then 6 points two at a time: 3 rounds of 10.
+    assert said.startswith("expected time on a 2-core machine: about 76 min (2 tracker stages 40 min; 1 demos")
+    assert "6 runs of physicsvae, 2 at a time, 30 min" in said and "not measured" not in said
+    unmeasured = stages.expected_time(cfg, empty, "default")
+    assert "not measured at scale smoke: tracker, demos, world_model, physicsvae" in unmeasured
+    assert stages.pending(pipeline["cfg"], pipeline["uri"], "default") == []  # the pipeline's store holds them all
