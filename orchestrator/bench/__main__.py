@@ -110,7 +110,14 @@ def main(argv: list[str] | None = None) -> int:
     chaos.add_argument("--outage", type=float, help="seconds the tracking server is down (default: min(180, 20 x M))")
     chaos.add_argument("--run-dir", type=Path, help="where the run and the server's store go (default: outputs/bench/)")
     chaos.add_argument("overrides", nargs="*", help="Hydra overrides of the run, e.g. runtime.rollout_workers=3")
-    for p in (sim, learners, device, pipeline, rollout, host, peer, learning, chaos):
+    offline = sub.add_parser(
+        "offline", help="PhysicsVAE's offline updates: bfloat16, features once, threads, 2 at once"
+    )
+    offline.add_argument("--scale", default="cpu", help="the sizes of algo_scale/physicsvae_<scale> and world_model_")
+    offline.add_argument("--rounds", type=int, default=5, help="interleaved rounds")
+    offline.add_argument("--updates", type=int, default=20, help="updates per block")
+    offline.add_argument("--learners", default="vae,world_model", help="comma-separated subset of vae,world_model")
+    for p in (sim, learners, device, pipeline, rollout, host, peer, learning, chaos, offline):
         p.add_argument("--json", action="store_true", help="print JSON instead of the table")
         p.add_argument("--out", type=Path, help="also write the JSON to this file")
     args = parser.parse_args(argv)
@@ -251,6 +258,14 @@ def main(argv: list[str] | None = None) -> int:
             print(e, file=sys.stderr)
             return 2
         text = bench_peer.format_table(result)
+    elif args.what == "offline":
+        from orchestrator.bench import offline as bench_offline
+
+        names = tuple(n for n in args.learners.split(",") if n)
+        if not names or set(names) - {"vae", "world_model"} or args.rounds < 1 or args.updates < 1:
+            parser.error("--learners: a subset of vae,world_model; --rounds and --updates at least 1")
+        result = bench_offline.run(args.scale, args.rounds, args.updates, names)
+        text = bench_offline.format_table(result)
     elif args.what == "learning":
         import time
 
