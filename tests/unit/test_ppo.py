@@ -375,28 +375,3 @@ def test_ppo_with_the_helper_learns_an_action_that_depends_on_the_latent():
         )  # fmt: skip
         learner.train_on_rollout(rollout)
     assert np.mean(errors[-5:]) < 0.5 * np.mean(errors[:5]), errors
-
-
-def test_the_adaptive_step_size_follows_the_kl_and_stays_in_its_bounds():
-    """desired_kl: a step whose KL is above twice the target divides the policy's step size by 1.5, one below
-    half multiplies it by 1.5, one between leaves it; within [lr_min, lr_max]; the value's step size stays."""
-    cfg = PPOConfig(**SMALL, desired_kl=0.01, lr_min=1e-4, lr_max=2e-3)
-    learner = PPOLearner(3, 2, cfg)
-    policy, value = learner.optimizer.param_groups
-    learner._adapt_step_size(0.05)
-    assert policy["lr"] == pytest.approx(1e-3 / 1.5) and value["lr"] == cfg.value_lr
-    learner._adapt_step_size(0.01)
-    assert policy["lr"] == pytest.approx(1e-3 / 1.5)
-    for _ in range(10):
-        learner._adapt_step_size(0.001)
-    assert policy["lr"] == 2e-3
-    for _ in range(20):
-        learner._adapt_step_size(1.0)
-    assert policy["lr"] == 1e-4
-    # In a PPO iteration: the step size moves with each minibatch's KL, and a fixed one does not.
-    adaptive = PPOLearner(3, 2, PPOConfig(**SMALL, desired_kl=1e-6, epochs=3, minibatch_size=48))
-    metrics = adaptive.train_on_rollout(make_rollout(0))
-    assert adaptive.optimizer.param_groups[0]["lr"] < 1e-3 and metrics["lr"] < 1e-3
-    fixed = PPOLearner(3, 2, PPOConfig(**SMALL, epochs=3, minibatch_size=48))
-    fixed.train_on_rollout(make_rollout(0))
-    assert fixed.optimizer.param_groups[0]["lr"] == 1e-3

@@ -74,14 +74,6 @@ class PPOConfig:
     action_bound: float | None = None
     # Weight of the action-bound penalty.
     action_bound_coef: float = 10.0
-    # An adaptive policy step size (rl_games' and legged_gym's schedule): after every minibatch, the policy's
-    # step size is divided by 1.5 when its approx KL to the acting policy exceeds 2 × desired_kl and multiplied
-    # by 1.5 when it is below desired_kl / 2, within [lr_min, lr_max]; None keeps policy_lr fixed. With a small
-    # fixed action std (0.05) a fixed Adam step moves the mean by many stds an iteration: clip fractions of
-    # 0.6 and KLs of 0.2-1.0 on the tracker at 1e-4 (docs/physicsvae.md).
-    desired_kl: float | None = None
-    lr_min: float = 1e-6
-    lr_max: float = 1e-2
     # Seeds network initialisation, minibatch shuffling and action sampling.
     seed: int = 0
 
@@ -94,8 +86,6 @@ class PPOConfig:
             raise ValueError("PPOConfig.epochs and minibatch_size must be at least 1")
         if not (self.clip > 0 and self.action_std > 0):
             raise ValueError("PPOConfig.clip and action_std must be positive")
-        if self.desired_kl is not None and not (self.desired_kl > 0 and 0 < self.lr_min <= self.lr_max):
-            raise ValueError("PPOConfig.desired_kl must be positive and 0 < lr_min <= lr_max")
 
 
 @dataclass
@@ -263,9 +253,7 @@ class PPOLearner(Learner):
         for _ in range(cfg.epochs):
             order = torch.randperm(n, generator=self._shuffle_rng).to(self.device)
             for start in range(0, n, cfg.minibatch_size):
-                step = self.update(data[order[start : start + cfg.minibatch_size]])
-                self._adapt_step_size(step.get("approx_kl"))
-                for k, v in step.items():
+                for k, v in self.update(data[order[start : start + cfg.minibatch_size]]).items():
                     if k in _LAST:
                         last[k] = v
                     else:
@@ -280,17 +268,6 @@ class PPOLearner(Learner):
         metrics["return_mean"] = float(returns.mean())
         metrics["reward_mean"] = float(rewards.mean())
         return metrics
-
-    def _adapt_step_size(self, kl: float | None) -> None:
-        """The adaptive schedule of `PPOConfig.desired_kl` on the policy's step size (the value's stays)."""
-        cfg = self.config
-        if cfg.desired_kl is None or kl is None or not np.isfinite(kl):
-            return
-        group = self.optimizer.param_groups[0]  # the policy's
-        if kl > 2.0 * cfg.desired_kl:
-            group["lr"] = max(group["lr"] / 1.5, cfg.lr_min)
-        elif kl < 0.5 * cfg.desired_kl:
-            group["lr"] = min(group["lr"] * 1.5, cfg.lr_max)
 
     # Acting ------------------------------------------------------------------
     @torch.no_grad()
