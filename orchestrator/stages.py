@@ -56,6 +56,7 @@ TrainStage = Callable[[Config, dict[str, Upstream], str], str]
 # Keys that do not change what a run produces; runtime keeps only what changes the samples.
 NOT_RESULT = ("run_dir", "progress", "tracking", "resume", "preset", "sweep_seeds", "scale_name", "stage_overrides")
 RUNTIME_RESULT = ("rollout_workers", "envs_per_worker")
+LOOP_NOT_RESULT = ("expected_minutes",)  # what a run is expected to take, not what it computes
 # What an upstream stage shares with the run that needs it.
 SHARED = (
     "character", "motion", "runtime", "sim", "eval", "tracking", "progress", "preset", "scale_name", "stage_overrides"
@@ -78,6 +79,7 @@ def config_hash(cfg: Config, upstream: dict[str, str] | None = None) -> str:
     # Sections the method does not use are None: left out, so that a new section elsewhere changes no hash.
     # The method is named by algo.name; its class's module path (_target_) is where code lives, not what it computes.
     d["algo"] = {k: v for k, v in d["algo"].items() if v is not None and k != "_target_"}
+    d["algo"]["loop"] = {k: v for k, v in d["algo"]["loop"].items() if k not in LOOP_NOT_RESULT}
     d["algo"]["needs"] = dict(sorted((upstream or {}).items()))
     d["inputs"] = inputs_digest(cfg.character.xml, cfg.motion.clips)
     d["code"] = code_version(cfg.tracking.stage_code)

@@ -173,6 +173,12 @@ def test_stage_overrides_reach_the_stages_above_and_bad_ones_name_the_need():
     expert = stages.upstream_config(demos, "tracker", "expert")
     assert expert.algo.loop.iterations == 9 and expert.algo.name == "tracker"
     assert stages.config_hash(cfg) == stages.config_hash(validate(composed("algo=physicsvae")))  # hashed above
+    # What a run is expected to take is not what it computes; what it computes is.
+    same = validate(composed("algo=physicsvae", "algo.loop.expected_minutes=12"))
+    assert stages.config_hash(same) == stages.config_hash(cfg)
+    assert stages.config_hash(validate(composed("algo=physicsvae", "algo.loop.iterations=61"))) != stages.config_hash(
+        cfg
+    )
     with pytest.raises(ConfigError, match=r"algo.needs.expert \(tracker algo.loop.iterationz=3\): Key 'iterationz'"):
         stages.upstream_config(demos, "tracker algo.loop.iterationz=3", "expert")
 
