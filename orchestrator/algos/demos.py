@@ -75,12 +75,10 @@ class Demos(Method):
     def clip_experts(self) -> tuple[np.ndarray, np.ndarray]:
         """(the expert of each library clip, whether it runs mirrored): the library holds each clip of
         motion.clips followed, with motion.mirror, by its mirror."""
-        n = len(self.cfg.motion.clips)
+        n, per = len(self.cfg.motion.clips), 2 if self.cfg.motion.mirror else 1
         if self.cfg.algo.demos.experts == "shared":
-            return np.zeros(n * (2 if self.cfg.motion.mirror else 1), int), np.zeros(0, bool)
-        if self.cfg.motion.mirror:
-            return np.repeat(np.arange(n), 2), np.tile([False, True], n)
-        return np.arange(n), np.zeros(n, bool)
+            return np.zeros(n * per, int), np.zeros(n * per, bool)
+        return np.repeat(np.arange(n), per), np.tile([False, True][:per], n)
 
     def expert_weights(self) -> Weights:
         experts = [expert_weights(up) for up in self.experts()]
@@ -166,7 +164,7 @@ class Demos(Method):
             up = experts[which[c]]
             per_clip[name] = {
                 "expert_run": up.run_id,
-                "mirrored": bool(mirrored[c]) if len(mirrored) else False,
+                "mirrored": bool(mirrored[c]),
                 "episodes": int(e.sum()),
                 "transitions": int(demos.episode_length[e].sum()),
                 "fell": int(demos.episode_fell[e].sum()),
