@@ -4,7 +4,10 @@ NumPy arrays (replay contents, RNG states) are stored as tensors under a marker
 so that the safe unpickler can read them back. A file that cannot be used (truncated,
 not a weights file, written for networks of other sizes) is a `CheckpointError` naming
 it and what is wrong; it is not deleted for that (only `prune` deletes, the oldest first), and a
-resume goes on to the one before it (`newest_first`). A save is durable once it returns (the file and its directory
+resume goes on to the one before it (`newest_first`). Each checkpoint has its SHA-256 beside it
+(`ckpt-N.pt.sha256`, in `sha256sum`'s format) and `load` checks it, so a file changed after its save (zeroed
+pages, a bad disk) is refused like a truncated one; a checkpoint from before digests (no `.sha256`) loads
+unchecked. A save is durable once it returns (the file and its directory
 are fsynced) and leaves nothing behind if interrupted; `prune` keeps the newest few. Beside the
 checkpoints, a run directory holds `RUN_FILE`, the id of the MLflow run that a resume reopens,
 and `LOCK_FILE`, locked by the command that runs in it (`lock_run_dir`).
@@ -25,9 +28,12 @@ from typing import Any, TextIO
 import numpy as np
 import torch
 
+from orchestrator.tracking.manifest import sha256
+
 RUN_FILE = "run.json"  # in the run directory: {"run_id": <the MLflow run a resume continues>}
 LOCK_FILE = "run.lock"  # in the run directory: locked (flock) while a command runs in it
 
+DIGEST_SUFFIX = ".sha256"  # ckpt-N.pt.sha256 beside ckpt-N.pt: "<hex>  ckpt-N.pt"
 _NUMPY = "__numpy__"
 # What every checkpoint the trainer writes holds besides its components' states (orchestrator.trainer).
 TRAINER_KEYS = ("loop", "method", "workers")
@@ -71,24 +77,35 @@ def _decode(x: Any) -> Any:
 
 
 def save(directory: str | Path, iteration: int, state: dict[str, Any]) -> Path:
-    """Write `ckpt-<iteration>.pt` atomically and durably: written to `<name>.tmp`, fsynced, renamed over
-    `ckpt-<iteration>.pt` and the directory fsynced, so a crash leaves the previous checkpoints intact and a
-    save that returned survives a power cut. Interrupted (Ctrl-C) before the rename, it deletes the `.tmp`."""
+    """Write `ckpt-<iteration>.pt` atomically and durably: written to `<name>.tmp`, fsynced, its digest written
+    beside it (`digest_path`), renamed over `ckpt-<iteration>.pt` and the directory fsynced, so a crash leaves the
+    previous checkpoints intact and a save that returned survives a power cut. Interrupted (Ctrl-C, a full disk)
+    before the rename, it deletes the `.tmp` files."""
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
     path = directory / f"ckpt-{iteration:07d}.pt"
     tmp = path.with_suffix(".tmp")
+    digest, digest_tmp = digest_path(path), directory / f"{path.name}{DIGEST_SUFFIX}.tmp"
     try:
         with open(tmp, "wb") as f:
             torch.save(_encode(state), f)
             f.flush()
             os.fsync(f.fileno())
+        digest_tmp.write_text(f"{sha256(tmp)}  {path.name}\n")
+        os.replace(digest_tmp, digest)
         os.replace(tmp, path)
     except BaseException:
         tmp.unlink(missing_ok=True)
+        digest_tmp.unlink(missing_ok=True)
         raise
     _fsync_dir(directory)
     return path
+
+
+def digest_path(path: str | Path) -> Path:
+    """Where checkpoint `path`'s SHA-256 is kept: `<name>.sha256` beside it."""
+    path = Path(path)
+    return path.with_name(path.name + DIGEST_SUFFIX)
 
 
 def _fsync_dir(directory: Path) -> None:
@@ -123,6 +140,7 @@ def prune(directory: str | Path, keep: int, forget: Callable[[Path], None] | Non
         if forget is not None:
             forget(path)
         path.unlink(missing_ok=True)
+        digest_path(path).unlink(missing_ok=True)
     return old
 
 
@@ -148,8 +166,9 @@ def lock_run_dir(run_dir: str | Path) -> TextIO:
 
 
 def load(path: str | Path) -> dict[str, Any]:
-    """The state dict saved in `path`; CheckpointError if it is missing, truncated, not a weights file,
-    holds more than tensors and plain containers (refused by `weights_only=True`), or is not a dict."""
+    """The state dict saved in `path`; CheckpointError if it is missing, does not match the digest beside it,
+    is truncated, not a weights file, holds more than tensors and plain containers (refused by
+    `weights_only=True`), or is not a dict."""
     path = Path(path)
     if not path.is_file():
         raise CheckpointError(path, "is a directory, not a checkpoint" if path.is_dir() else "no such file")
@@ -159,9 +178,23 @@ def load(path: str | Path) -> dict[str, Any]:
             state = torch.load(path, weights_only=True, map_location="cpu")
     except Exception as e:
         raise CheckpointError(path, _unreadable(path, e)) from None
+    check_digest(path)  # after the load, whose messages say more of a file that is truncated or not ours
     if not isinstance(state, dict):
         raise CheckpointError(path, f"not a checkpoint (it holds a {type(state).__name__}, not a dict of states)")
     return _decode(state)
+
+
+def check_digest(path: Path) -> None:
+    """CheckpointError unless `path`'s contents have the SHA-256 written beside it at its save (none there: a
+    checkpoint from before digests, not checked)."""
+    digest = digest_path(path)
+    if not digest.is_file():
+        return
+    expected = digest.read_text().split()[:1]
+    if expected != [sha256(path)]:
+        raise CheckpointError(
+            path, f"corrupt: its contents do not match the SHA-256 in {digest.name} (changed since it was saved)"
+        )
 
 
 def _unreadable(path: Path, e: Exception) -> str:

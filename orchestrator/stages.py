@@ -47,9 +47,9 @@ from orchestrator import checkpoint
 from orchestrator.compose import CONF_DIR, compose, find_method, validate
 from orchestrator.provenance import code_version, inputs_digest
 from orchestrator.schema import Config, ConfigError
-from orchestrator.tracking.query import find_finished
+from orchestrator.tracking.query import complete_runs, find_finished
 from orchestrator.tracking.uri import redact
-from orchestrator.upstream import RUN_ID, Upstream, existing_run, provenance, short_error
+from orchestrator.upstream import RUN_ID, StageError, Upstream, existing_run, manifest_digest, provenance, short_error
 
 # Trains a stage's config with its resolved upstream stages under its stage hash; returns its run id.
 TrainStage = Callable[[Config, dict[str, Upstream], str], str]
@@ -161,14 +161,19 @@ def ensure(
     for r, u in above.items():
         lineage.update({f"{r}.{k}": v for k, v in u.lineage.items()})
     trusted = trusted_experiments(cfg, experiment)
-    found = find_finished(uri, h, trusted)
-    if found:
+    for found, digest in complete_runs(uri, h, trusted):
         origin = provenance(role, uri, found)
+        stage = Upstream(role, up.algo.name, found, h, uri, cache, True, lineage, origin, digest)
+        try:
+            stage.verify()
+        except StageError as e:
+            log(f"{e}; not used")
+            continue
         log(
             f"stage {role}: reusing {up.algo.name} run {found} (hash {h}) of experiment {origin['experiment']!r}, "
             f"user {origin['user']}, commit {origin['git_commit'][:12]}"
         )
-        return Upstream(role, up.algo.name, found, h, uri, cache, True, lineage, origin)
+        return stage
     up.run_dir = str(workdir / "stages" / f"{up.algo.name}-{h[:8]}")
     # A stage cut short here before (its run FAILED or never ended) continues from its last checkpoint.
     up.resume = checkpoint.latest(Path(up.run_dir) / "checkpoints") is not None
@@ -181,7 +186,8 @@ def ensure(
     where = f"{where} of {redact(uri)}"
     log(f"stage {role}: no finished {up.algo.name} run with hash {h} in {where}; {how} in {up.run_dir}")
     new_id = train(up, above, h)
-    return Upstream(role, up.algo.name, new_id, h, uri, cache, False, lineage, provenance(role, uri, new_id))
+    origin, digest = provenance(role, uri, new_id), manifest_digest(role, uri, new_id)
+    return Upstream(role, up.algo.name, new_id, h, uri, cache, False, lineage, origin, digest)
 
 
 def pending(cfg: Config, uri: str, experiment: str) -> list[Config]:

@@ -236,12 +236,14 @@ class Trainer:
         )
         path = checkpoint.save(self.ckpt_dir, self.state.iteration, state)
         self.logger.log_artifact(str(path), "checkpoints")
+        self.logger.log_artifact(str(checkpoint.digest_path(path)), "checkpoints")
         # The newest `checkpoint_keep` stay, here and in the store (deleted there first, in order after the uploads).
         checkpoint.prune(self.ckpt_dir, self.cfg.algo.loop.checkpoint_keep, self._forget)
         return path
 
     def _forget(self, path: Path) -> None:
         self.logger.delete_artifact(f"checkpoints/{path.name}")
+        self.logger.delete_artifact(f"checkpoints/{checkpoint.digest_path(path).name}")
 
     def restore(self, path: Path) -> None:
         """Load every component, the method and the workers from `path`; CheckpointError naming the file and

@@ -9,13 +9,19 @@ Each reader names the stage and the artifact when something is missing or unusab
 - `expert_weights`: an expert's network (a tracker or amp run's PPO actor, a controlvae run's VAE);
 - `load_demos`, `load_manifest`: the demos dataset an `algo=demos` stage wrote;
 - `layer_state`: PhysicsVAE's simulation layer, from a world_model stage's checkpoint;
-- `existing_run`: a finished run given by its id (`tracking.query.find_finished` finds one by stage hash).
+- `existing_run`: a finished run given by its id (`tracking.query.complete_runs` finds them by stage hash).
+
+A stage found by its hash carries its manifest's digest (`manifest_digest`, the run's `artifacts_sha256` tag):
+every artifact it downloads is checked against the manifest (`orchestrator.tracking.manifest`), and one that
+does not match is a StageError naming the run and the file; `verify` checks what a consumer reads before the
+stage is used.
 """
 
 from __future__ import annotations
 
 import json
 import re
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -23,7 +29,7 @@ from typing import Any
 from orchestrator import checkpoint
 from orchestrator.compose import find_method, validate
 from orchestrator.schema import Config, ConfigError
-from orchestrator.tracking import query
+from orchestrator.tracking import manifest, query
 from orchestrator.tracking.uri import redact
 from workers.demos import DemoError, DemoSet
 from workers.learners.base import Weights
@@ -52,6 +58,9 @@ class Upstream:
     reused: bool  # found finished in the store, not run for this one
     lineage: dict[str, str] = field(default_factory=dict)  # "demos.expert" -> run id, for every stage above
     provenance: dict[str, str] = field(default_factory=dict)  # its run's experiment, user and git commit
+    manifest_digest: str | None = None  # its manifest's SHA-256: artifacts are checked (None: a run named by id
+    # that has no manifest, used unchecked)
+    _entries: dict[str, str] | None = field(default=None, repr=False)
 
     def describe(self) -> str:
         return f"stage {self.role} ({self.name}, run {self.run_id})"
@@ -62,6 +71,34 @@ class Upstream:
         parts = Path(path).parts
         if not parts or Path(path).is_absolute() or ".." in parts or "\\" in path:
             raise StageError(f"{self.describe()}: artifact path {path!r} is refused (absolute, empty or with '..')")
+        local = self._download(path)
+        if self.manifest_digest is not None:
+            try:
+                manifest.check(self.entries(), path, local, self.describe())
+            except manifest.ManifestError as e:
+                local.unlink(missing_ok=True)  # not served from the cache next time
+                raise StageError(str(e)) from None
+        return local
+
+    def entries(self) -> dict[str, str]:
+        """The stage's manifest {artifact path: sha256}, downloaded once and checked against its digest."""
+        if self._entries is None:
+            try:
+                text = self._download(manifest.MANIFEST_FILE).read_text()
+                self._entries = manifest.parse(text, self.manifest_digest or "", self.describe())
+            except (manifest.ManifestError, OSError) as e:
+                raise StageError(str(e)) from None
+        return self._entries
+
+    def verify(self) -> None:
+        """Check now what a consumer of the stage reads (its config, newest checkpoint and demos): a StageError
+        naming the file at the first that does not match its manifest, or is missing."""
+        names = self.entries()
+        newest = sorted(n for n in names if re.fullmatch(r"checkpoints/ckpt-\d+\.pt", n))[-1:]
+        for name in ["config.json", *newest, *sorted(n for n in names if n.startswith("demos/"))]:
+            self.artifact(name)
+
+    def _download(self, path: str) -> Path:
         folder = self.cache / self.run_id
         local = folder / path
         if local.exists():
@@ -120,21 +157,35 @@ def existing_run(role: str, run_id: str, uri: str, cache: Path) -> Upstream:
         raise StageError(f"stage {role}: run {run_id} is not in {redact(uri)} ({short_error(e)})") from None
     if status != "FINISHED":
         raise StageError(f"stage {role}: run {run_id} is {status}, not FINISHED")
+    if not tags.get(manifest.COMPLETE_TAG):
+        print(
+            f"stage {role}: run {run_id} has no {manifest.MANIFEST_FILE} (from before manifests, or its uploads "
+            "did not all land): its artifacts are used unchecked",
+            file=sys.stderr,
+        )
     lineage = {
         k.removeprefix("upstream."): v
         for k, v in tags.items()
         if k.startswith("upstream.") and k.rpartition(".")[2] not in ("reused", *query.PROVENANCE)
     }
     name = tags.get("algo", "?")
-    return Upstream(
-        role, name, run_id, tags.get("stage_hash", run_id), uri, cache, True, lineage, provenance(role, uri, run_id)
-    )
+    origin = provenance(role, uri, run_id)
+    digest = tags.get(manifest.COMPLETE_TAG) or None
+    return Upstream(role, name, run_id, tags.get("stage_hash", run_id), uri, cache, True, lineage, origin, digest)
 
 
 def provenance(role: str, uri: str, run_id: str) -> dict[str, str]:
     """Where stage `role`'s run came from (`tracking.query.run_provenance`); a StageError if the store cannot say."""
     try:
         return query.run_provenance(uri, run_id)
+    except Exception as e:
+        raise StageError(f"stage {role}: cannot read run {run_id} in {redact(uri)} ({short_error(e)})") from None
+
+
+def manifest_digest(role: str, uri: str, run_id: str) -> str | None:
+    """Run `run_id`'s manifest digest (its `artifacts_sha256` tag); None while its uploads have not all landed."""
+    try:
+        return query.run_status_and_tags(uri, run_id)[1].get(manifest.COMPLETE_TAG) or None
     except Exception as e:
         raise StageError(f"stage {role}: cannot read run {run_id} in {redact(uri)} ({short_error(e)})") from None
 

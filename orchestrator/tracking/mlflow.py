@@ -30,6 +30,9 @@ Choices worth knowing:
 - The tracker writes no credential of its store: `hide` masks the URI's password in every log record; the run
   name, param and tag values and the text of `log_dict`/`log_text` pass through `scrub`; an HTTP server's user
   and password go to MLflow through its environment variables (`credentials_to_env`), and `uri` is without them.
+- Every file submitted is listed with its SHA-256 (`orchestrator.tracking.manifest`); a run that ends FINISHED
+  uploads the list last (`artifacts.sha256.json`) and then, behind every upload still spooled, sets the tag
+  `artifacts_sha256`: what a stage needs to be reused.
 - One live tracker per run directory: the spool is guarded by a lock within the process only.
 """
 
@@ -50,6 +53,7 @@ from orchestrator.tracking.base import (
     store_artifacts,
     truncate,
 )
+from orchestrator.tracking.manifest import MANIFEST_FILE, Manifest, text_digest
 from orchestrator.tracking.spool import (  # sets MLflow's client defaults before mlflow is imported
     ARTIFACT_DIR,
     METRICS_PER_BATCH,
@@ -131,11 +135,13 @@ class MlflowLogger(RunLogger):
         self._closed = False
         tags = {str(k): truncate(scrub(str(v)), MAX_TAG_VALUE_LENGTH) for k, v in (tags or {}).items()}
         if run_id is not None and self._resume(run_id):
+            self.manifest = Manifest(self.run_dir, resumed=True)
             self._key = run_id
             self._sender.submit({"op": "resume", "run": run_id})
             if tags:
                 self.set_tags(tags)
             return
+        self.manifest = Manifest(self.run_dir, resumed=False)
         self._key = f"{PENDING}{uuid.uuid4().hex}"
         if parent_run_id is not None:
             tags["mlflow.parentRunId"] = parent_run_id
@@ -184,7 +190,9 @@ class MlflowLogger(RunLogger):
 
     def delete_artifact(self, artifact_path: str) -> None:
         """Delete `artifact_path` from the run's artifacts, after the records submitted before (spooled alike)."""
-        self._submit("delete", artifact_path)
+        with self._lock:
+            self.manifest.remove(artifact_path)
+            self._submit("delete", artifact_path)
 
     def log_dict(self, obj: Any, artifact_file: str) -> None:
         self.log_text(dump_text(obj, artifact_file), artifact_file)
@@ -212,9 +220,22 @@ class MlflowLogger(RunLogger):
             if self._closed:
                 return
             self._closed = True
+            if status == "FINISHED":
+                text = self.manifest.text()
+                path = self._owned_file(MANIFEST_FILE)
+                path.write_text(text)
+                self._sender.submit({"op": "artifact", "run": self._key, "path": str(path), "owned": True})
+                self._sender.submit({"op": "complete", "run": self._key, "complete": text_digest(text)})
             self.flush()
             self._sender.submit({"op": "end", "run": self._key, "status": status, "end_time": _now_ms()})
         self._sender.stop()
+        if self._sender.artifacts.count:
+            log.warning(
+                "tracking: %d artifact uploads of this run wait in %s: the run is not complete in the store (as a "
+                "stage it is not reused) until they land",
+                self._sender.artifacts.count,
+                self._sender.artifacts.path.name,
+            )
         if self.pending():
             log.warning(
                 "tracking: %d records left in %s and %s; the next tracker on this run directory sends them, "
@@ -263,6 +284,8 @@ class MlflowLogger(RunLogger):
 
     def _submit_artifact(self, path: Path, artifact_path: str | None, owned: bool) -> None:
         """`owned`: a file the tracker wrote itself, deleted once uploaded."""
+        with self._lock:
+            self.manifest.add(path, artifact_path)
         record = {"op": "artifact", "run": self._key, "path": str(path), "artifact_path": artifact_path}
         self._sender.submit({**record, "owned": owned})
 

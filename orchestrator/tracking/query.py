@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from orchestrator.tracking.base import EXPERIMENT_TAGS, store_artifacts
+from orchestrator.tracking.manifest import COMPLETE_TAG
 
 
 def MlflowClient(uri: str):  # noqa: N802 - stands in for the class it returns an instance of
@@ -39,8 +40,9 @@ def run_metrics(uri: str, run_id: str) -> dict[str, float]:
 
 
 def run_status_and_tags(uri: str, run_id: str) -> tuple[str, dict[str, str]]:
+    """The run's status (DELETED for a deleted run the store keeps for undeletion) and its tags."""
     r = MlflowClient(uri).get_run(run_id)
-    return r.info.status, dict(r.data.tags)
+    return ("DELETED" if r.info.lifecycle_stage == "deleted" else r.info.status), dict(r.data.tags)
 
 
 def run_exists(uri: str, run_id: str) -> bool | None:
@@ -60,8 +62,15 @@ def artifact_root(uri: str, run_id: str) -> str:
 
 
 def find_finished(uri: str, stage_hash: str, experiments: list[str]) -> str | None:
-    """The newest FINISHED run with this stage hash in the named experiments ("*": any experiment of the store;
-    names the store does not have are skipped)."""
+    """The newest complete run with this stage hash in the named experiments (`complete_runs`)."""
+    runs = complete_runs(uri, stage_hash, experiments, limit=1)
+    return runs[0][0] if runs else None
+
+
+def complete_runs(uri: str, stage_hash: str, experiments: list[str], limit: int = 5) -> list[tuple[str, str]]:
+    """(run id, manifest digest) of the newest `limit` FINISHED runs with this stage hash whose artifacts all
+    landed (the tag `manifest.COMPLETE_TAG`), newest first, in the named experiments ("*": any experiment of the
+    store; names the store does not have are skipped). Deleted runs are never among them."""
     client = MlflowClient(uri)
     if "*" in experiments:
         ids = [e.experiment_id for e in client.search_experiments()]
@@ -69,14 +78,15 @@ def find_finished(uri: str, stage_hash: str, experiments: list[str]) -> str | No
         found = (client.get_experiment_by_name(name) for name in dict.fromkeys(experiments))
         ids = [e.experiment_id for e in found if e is not None]
     if not ids:
-        return None
+        return []
     runs = client.search_runs(
         ids,
         filter_string=f"tags.stage_hash = '{stage_hash}' and attributes.status = 'FINISHED'",
         order_by=["attributes.start_time DESC"],
-        max_results=1,
+        max_results=100,
     )
-    return runs[0].info.run_id if runs else None
+    complete = [(r.info.run_id, r.data.tags[COMPLETE_TAG]) for r in runs if r.data.tags.get(COMPLETE_TAG)]
+    return complete[:limit]
 
 
 # What `run_provenance` says of a run.

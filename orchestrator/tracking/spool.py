@@ -58,6 +58,7 @@ from mlflow.store.artifact.artifact_repository_registry import get_artifact_repo
 from mlflow.tracking import MlflowClient  # noqa: E402
 
 from orchestrator.tracking.base import EXPERIMENT_TAGS  # noqa: E402
+from orchestrator.tracking.manifest import COMPLETE_TAG  # noqa: E402
 from orchestrator.tracking.spoolfile import Spool  # noqa: E402
 from orchestrator.tracking.uri import credentials_to_env, redact  # noqa: E402
 
@@ -88,7 +89,9 @@ def refused(err: BaseException) -> bool:
 
 
 # The records that wait in the side spool while uploads are held: uploads, and deletions (kept behind them).
-ARTIFACT_OPS = ("artifact", "delete")
+# Records that wait behind the uploads in the side spool: a checkpoint's deletion (which may be of a file still
+# waiting there) and the completion tag, set only once every artifact before it has landed.
+ARTIFACT_OPS = ("artifact", "delete", "complete")
 
 
 class Sender:
@@ -398,6 +401,8 @@ class Sender:
         elif op == "delete":  # not in MlflowClient: through the run's artifact repository (a no-op when gone)
             repo = get_artifact_repository(client.get_run(self._run_id(record)).info.artifact_uri, self.uri)
             repo.delete_artifacts(record["delete"])
+        elif op == "complete":
+            client.set_tag(self._run_id(record), COMPLETE_TAG, record["complete"])
         elif op == "end":
             client.set_terminated(self._run_id(record), status=record["status"], end_time=record["end_time"])
         else:

@@ -287,6 +287,24 @@ def _truncate(path: Path) -> None:
     path.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
 
 
+def _zero_tensors(path: Path) -> None:
+    """Every tensor zeroed, in an archive that is still valid: only the digest beside it tells."""
+    import torch
+
+    state = torch.load(path, weights_only=True)
+
+    def zero(x):
+        if isinstance(x, torch.Tensor):
+            return torch.zeros_like(x)
+        if isinstance(x, dict):
+            return {k: zero(v) for k, v in x.items()}
+        if isinstance(x, (list, tuple)):
+            return type(x)(zero(v) for v in x)
+        return x
+
+    torch.save(zero(state), path)
+
+
 def _not_weights(path: Path) -> None:
     path.write_text("step,reward\n1,0.5\n")  # a CSV saved under the checkpoint's name
 
@@ -294,6 +312,7 @@ def _not_weights(path: Path) -> None:
 CHECKPOINTS = [
     ("truncated", _truncate, (), "truncated or corrupt (an incomplete zip archive of"),
     ("not_weights", _not_weights, (), "not a PyTorch weights file"),
+    ("zeroed", _zero_tensors, (), "corrupt: its contents do not match the SHA-256 in ckpt-0000001.pt.sha256"),
     (
         "other_sizes",
         lambda path: None,

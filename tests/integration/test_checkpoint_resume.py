@@ -25,12 +25,20 @@ ROOT = Path(__file__).resolve().parents[2]
 
 
 def names(directory: Path) -> list[str]:
-    return sorted(p.name for p in directory.iterdir())
+    """The checkpoints in `directory`, after checking that each has its digest beside it and nothing else is there."""
+    files = sorted(p.name for p in directory.iterdir())
+    ckpts = [n for n in files if n.endswith(".pt")]
+    assert files == sorted([*ckpts, *(f"{n}.sha256" for n in ckpts)]), files
+    return ckpts
 
 
 def stored(run_dir: Path, run_id: str) -> list[str]:
+    """The checkpoints in the run's store, after checking that each has its digest beside it there too."""
     client = MlflowClient(f"sqlite:///{run_dir}/mlflow.db")
-    return sorted(Path(a.path).name for a in client.list_artifacts(run_id, "checkpoints"))
+    files = sorted(Path(a.path).name for a in client.list_artifacts(run_id, "checkpoints"))
+    ckpts = [n for n in files if n.endswith(".pt")]
+    assert files == sorted([*ckpts, *(f"{n}.sha256" for n in ckpts)]), files
+    return ckpts
 
 
 @pytest.mark.slow

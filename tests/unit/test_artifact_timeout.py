@@ -4,6 +4,8 @@ its experiment's artifacts on a local HTTP address that first stalls, then answe
 
 from __future__ import annotations
 
+import hashlib
+import json
 import os
 import socket
 import threading
@@ -78,7 +80,8 @@ def test_a_stalling_artifact_store_does_not_hold_up_the_run_end_and_its_files_ar
     run = MlflowClient(uri).get_run(tracker.run_id)
     assert run.info.status == "FINISHED"  # the end was not queued behind the files
     assert [m.value for m in MlflowClient(uri).get_metric_history(tracker.run_id, "loss")] == [1.0, 0.5]
-    assert tracker.pending() == 3  # the three files, in the side spool
+    assert tracker.pending() == 5  # the three files, the manifest and the completion tag, in the side spool
+    assert "artifacts_sha256" not in run.data.tags  # FINISHED, but not complete: as a stage it is not reused
     assert (run_dir / "tracking-spool-artifacts.jsonl").exists() and not (run_dir / "tracking-spool.jsonl").exists()
     assert small.exists() and big.exists()
 
@@ -91,6 +94,10 @@ def test_a_stalling_artifact_store_does_not_hold_up_the_run_end_and_its_files_ar
     assert store.files[f"{where}/config.json"] == small.read_bytes()
     assert store.files[f"{where}/eval/summary.json"] == b'{\n  "b": 2\n}'
     assert store.files[f"{where}/checkpoints/ckpt.pt"] == big.read_bytes()
+    manifest = store.files[f"{where}/artifacts.sha256.json"]
+    assert set(json.loads(manifest)) == {"config.json", "eval/summary.json", "checkpoints/ckpt.pt"}
+    tags = MlflowClient(uri).get_run(tracker.run_id).data.tags  # set once the files had all landed
+    assert tags["artifacts_sha256"] == hashlib.sha256(manifest).hexdigest()
     assert not (run_dir / "tracking-spool-artifacts.jsonl").exists()
     assert not list((run_dir / "tracking-artifacts").iterdir())  # the tracker's own copy, deleted once sent
 

@@ -3,6 +3,7 @@ newest K, and the run directory's lock."""
 
 from __future__ import annotations
 
+import hashlib
 import os
 import re
 import stat
@@ -48,7 +49,7 @@ def test_an_interrupted_save_leaves_no_tmp_and_the_older_checkpoints_as_they_wer
     monkeypatch.setattr(checkpoint.torch, "save", cut_short)
     with pytest.raises(KeyboardInterrupt):
         checkpoint.save(tmp_path, 4, state(4))
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["ckpt-0000002.pt"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["ckpt-0000002.pt", "ckpt-0000002.pt.sha256"]
     assert first.read_bytes() == before
 
 
@@ -71,7 +72,8 @@ def test_prune_keeps_the_newest_k_and_removes_stray_tmp_files(tmp_path):
     (tmp_path / "ckpt-0000006.tmp").write_bytes(b"PK\x03\x04 left by a crash")
     removed = checkpoint.prune(tmp_path, keep=2)
     assert [p.name for p in removed] == ["ckpt-0000003.pt", "ckpt-0000002.pt", "ckpt-0000001.pt"]
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["ckpt-0000004.pt", "ckpt-0000005.pt"]
+    kept = ["ckpt-0000004.pt", "ckpt-0000004.pt.sha256", "ckpt-0000005.pt", "ckpt-0000005.pt.sha256"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == kept  # each digest goes with its checkpoint
     assert checkpoint.prune(tmp_path, keep=2) == []
 
 
@@ -91,7 +93,7 @@ def test_prune_forgets_a_checkpoint_before_deleting_it_so_a_cut_short_prune_is_r
     forgotten = []
     checkpoint.prune(tmp_path, keep=1, forget=lambda p: forgotten.append(p.name))
     assert forgotten == ["ckpt-0000002.pt", "ckpt-0000001.pt"]
-    assert [p.name for p in tmp_path.iterdir()] == ["ckpt-0000003.pt"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["ckpt-0000003.pt", "ckpt-0000003.pt.sha256"]
 
 
 def test_checkpoint_keep_below_one_is_refused_naming_the_key():
@@ -129,3 +131,16 @@ def test_the_default_run_directory_is_named_to_the_microsecond():
     run_dir, sweep_dir = cfg.hydra.run.dir, cfg.hydra.sweep.dir
     assert re.fullmatch(r"outputs/default/\d{4}-\d\d-\d\d_\d\d-\d\d-\d\d-\d{6}", run_dir), run_dir
     assert sweep_dir == run_dir
+
+
+def test_a_checkpoint_changed_after_its_save_is_refused_by_its_digest(tmp_path):
+    path = checkpoint.save(tmp_path, 1, state(1))
+    line = checkpoint.digest_path(path).read_text()
+    assert line == f"{hashlib.sha256(path.read_bytes()).hexdigest()}  ckpt-0000001.pt\n"  # sha256sum's format
+    assert checkpoint.load(path)["loop"]["iteration"] == 1
+    other = tmp_path / "other"
+    torch.save(checkpoint.load(checkpoint.save(other, 1, state(7))), path)  # a valid archive, other tensors
+    with pytest.raises(checkpoint.CheckpointError, match=r"corrupt: its contents do not match the SHA-256 in"):
+        checkpoint.load(path)
+    checkpoint.digest_path(path).unlink()  # a checkpoint from before digests loads unchecked
+    assert checkpoint.load(path)["loop"]["iteration"] == 7

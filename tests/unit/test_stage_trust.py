@@ -1,12 +1,15 @@
 """Stages reused only from experiments the run trusts, with their provenance; hashes that follow the inputs'
-contents and the code's version; every spec of a chain checked before any stage trains; downloads kept per run;
+contents and the code's version; stages complete only with their manifest, and their files checked against
+it; deleted runs refused; every spec of a chain checked before any stage trains; downloads kept per run;
 a store's config that names a class outside our methods refused before its module is imported."""
 
 from __future__ import annotations
 
+import hashlib
 import json
 import shutil
 import sys
+from pathlib import Path
 
 import pytest
 from mlflow.tracking import MlflowClient
@@ -14,8 +17,9 @@ from mlflow.tracking import MlflowClient
 from orchestrator import stages
 from orchestrator.compose import compose, validate
 from orchestrator.schema import ConfigError
-from orchestrator.tracking.query import find_finished
-from orchestrator.upstream import Upstream
+from orchestrator.tracking import manifest
+from orchestrator.tracking.query import complete_runs, find_finished
+from orchestrator.upstream import StageError, Upstream, existing_run
 from workers.motion.formats import resolve
 
 
@@ -32,10 +36,63 @@ def store(tmp_path_factory):
     return uri, client, ids
 
 
-def finished(client, experiment_id: str, stage_hash: str, **tags: str) -> str:
+def finished(client, experiment_id: str, stage_hash: str, complete: bool = True, **tags: str) -> str:
+    """A FINISHED stage run with a config.json; `complete`: with its manifest and completion tag, as our tracker
+    ends a run whose uploads all landed."""
     run = client.create_run(experiment_id, tags={"stage_hash": stage_hash, "algo": "tracker", **tags})
-    client.set_terminated(run.info.run_id, "FINISHED")
-    return run.info.run_id
+    run_id = run.info.run_id
+    client.log_text(run_id, "{}", "config.json")
+    if complete:
+        text = json.dumps({"config.json": hashlib.sha256(b"{}").hexdigest()})
+        client.log_text(run_id, text, manifest.MANIFEST_FILE)
+        client.set_tag(run_id, manifest.COMPLETE_TAG, manifest.text_digest(text))
+    client.set_terminated(run_id, "FINISHED")
+    return run_id
+
+
+def stored_file(client, run_id: str, path: str) -> Path:
+    """Where a SQLite store keeps run `run_id`'s artifact `path` (to spoil it as a bad disk would)."""
+    return Path(client.get_run(run_id).info.artifact_uri.removeprefix("file://")) / path
+
+
+def test_a_stage_whose_files_did_not_all_land_is_skipped_for_the_newest_complete_one(store):
+    uri, client, ids = store
+    older = finished(client, ids["mine"], "h-partial")
+    finished(client, ids["mine"], "h-partial", complete=False)  # newer, FINISHED, its uploads still spooled
+    assert find_finished(uri, "h-partial", ["mine"]) == older
+    assert [r for r, _ in complete_runs(uri, "h-partial", ["mine"])] == [older]
+
+
+def test_a_stage_artifact_changed_in_the_store_is_named_and_the_older_verified_run_is_used(store, tmp_path):
+    uri, client, ids = store
+    cfg = config(tmp_path, "algo=demos")
+    up = stages.upstream_config(cfg, "tracker", "expert")
+    h = stages.config_hash(up)
+    good = finished(client, ids["mine"], h)
+    spoiled = finished(client, ids["mine"], h)
+    stored_file(client, spoiled, "config.json").write_text('{"planted": 1}')
+    lines: list[str] = []
+    never = lambda *a: pytest.fail("trained")  # noqa: E731
+    used = stages.ensure("expert", "tracker", cfg, uri, tmp_path, "mine", never, lines.append)
+    assert used.run_id == good and used.reused
+    assert lines[0] == (
+        f"stage expert (tracker, run {spoiled}): artifact config.json does not match its SHA-256 in "
+        "artifacts.sha256.json (changed since the run); not used"
+    ), lines
+    # Read later by a consumer (an actor on another node, say), a file changed meanwhile is refused too.
+    stored_file(client, good, "config.json").write_text("{ }")
+    fresh = Upstream("expert", "tracker", good, h, uri, tmp_path / "other", True, manifest_digest=used.manifest_digest)
+    with pytest.raises(StageError, match=r"artifact config.json does not match its SHA-256"):
+        fresh.artifact("config.json")
+
+
+def test_a_deleted_run_is_refused_as_a_stage(store, tmp_path):
+    uri, client, ids = store
+    run_id = finished(client, ids["mine"], "h-deleted")
+    client.delete_run(run_id)
+    assert find_finished(uri, "h-deleted", ["mine"]) is None
+    with pytest.raises(StageError, match=rf"stage expert: run {run_id} is DELETED, not FINISHED"):
+        existing_run("expert", run_id, uri, tmp_path)
 
 
 def test_a_finished_run_in_another_experiment_is_found_only_where_trusted(store):

@@ -4,6 +4,7 @@ the round trip through a real server is in tests/integration/test_tracking_serve
 
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
 import subprocess
@@ -125,9 +126,15 @@ def test_embedded_run_gets_params_metrics_tags_and_artifacts(run_dir, tmp_path):
     assert run.data.tags["algo"] == "physicsvae" and run.data.tags["stage"] == "physicsvae"
     assert history(client, tracker.run_id, "vae/loss") == [(0, 0.0), (1000, 1.0), (2000, 2.0)]
     assert run.info.artifact_uri.startswith((run_dir / "mlartifacts").resolve().as_uri())
-    assert artifacts(client, tracker.run_id) == {"checkpoints", "config.json", "eval"}
+    assert artifacts(client, tracker.run_id) == {"artifacts.sha256.json", "checkpoints", "config.json", "eval"}
     assert artifacts(client, tracker.run_id, "eval") == {"eval/report.yaml", "eval/fall.png"}
     assert artifacts(client, tracker.run_id, "checkpoints") == {"checkpoints/ckpt.pt"}
+    # The manifest, last: every file by its SHA-256, and the manifest's own digest as the completion tag.
+    text = Path(client.download_artifacts(tracker.run_id, "artifacts.sha256.json", str(tmp_path))).read_text()
+    manifest = json.loads(text)
+    assert set(manifest) == {"checkpoints/ckpt.pt", "config.json", "eval/report.yaml", "eval/fall.png"}
+    assert manifest["checkpoints/ckpt.pt"] == hashlib.sha256(b"weights").hexdigest()
+    assert run.data.tags["artifacts_sha256"] == hashlib.sha256(text.encode()).hexdigest()
     local = Path(client.download_artifacts(tracker.run_id, "eval/report.yaml", str(tmp_path)))
     assert local.read_text() == "a:\n- 1\n- 2\n"
     config = Path(client.download_artifacts(tracker.run_id, "config.json", str(tmp_path)))
@@ -215,7 +222,7 @@ def test_unreachable_server_spools_and_the_spool_replays(run_dir, tmp_path):
     tracker.close()
     elapsed = time.perf_counter() - start
     assert elapsed < 10, f"an unreachable server cost {elapsed:.1f} s"  # MLflow's defaults retry for minutes
-    assert tracker.pending() == 1 + 1 + 20 + 2 + 1  # create, params, metrics, artifacts, end
+    assert tracker.pending() == 1 + 1 + 20 + 2 + 2 + 1  # create, params, metrics, artifacts, manifest+tag, end
     lines = (run_dir / SPOOL_FILE).read_text().splitlines()
     assert [json.loads(line)["op"] for line in lines[:3]] == ["create", "params", "metrics"]
 
@@ -227,14 +234,15 @@ def test_unreachable_server_spools_and_the_spool_replays(run_dir, tmp_path):
     assert run.info.run_name == "offline" and run.info.status == "FINISHED"
     assert run.data.tags["stage"] == "vae" and run.data.params == {"seed": "0"}
     assert history(client, run.info.run_id, "vae/loss") == [(s, float(s)) for s in range(20)]
-    assert artifacts(client, run.info.run_id) == {"checkpoints", "config.json"}
+    assert artifacts(client, run.info.run_id) == {"artifacts.sha256.json", "checkpoints", "config.json"}
+    assert run.data.tags["artifacts_sha256"]  # complete once replayed: set after the uploads
 
 
 def test_a_new_tracker_on_the_run_dir_replays_what_an_earlier_one_left(run_dir):
     offline = MlflowLogger(f"http://127.0.0.1:{free_port()}", "default", run_name="first", run_dir=run_dir)
     offline.log_metrics({"a": 1.0}, step=1)
     offline.close()
-    assert offline.pending() == 3
+    assert offline.pending() == 5  # create, metrics, the manifest and its tag, end
 
     online = MlflowLogger(None, "default", run_name="second", run_dir=run_dir)  # replays before creating its run
     assert online.pending() == 0
@@ -372,7 +380,7 @@ def test_close_stops_a_background_thread_that_is_still_retrying(run_dir):
     assert thread is not None and thread.is_alive()
     tracker.close()
     assert not thread.is_alive()
-    assert tracker.pending() == 3  # create, metrics, end: left for the next tracker or replay_spool
+    assert tracker.pending() == 5  # create, metrics, manifest, tag, end: left for the next tracker or replay_spool
 
 
 def test_a_spool_of_only_damaged_lines_is_cleared_not_retried_forever(run_dir):
