@@ -12,6 +12,7 @@
 from __future__ import annotations
 
 import importlib
+import math
 from pathlib import Path
 from typing import Any
 
@@ -70,6 +71,19 @@ def shipped_methods() -> set[str]:
     return {str(OmegaConf.load(p).get("_target_")) for p in sorted((CONF_DIR / "algo").glob("*.yaml"))}
 
 
+def _check_finite(node: Any, key: str = "") -> None:
+    """ConfigError naming the first key whose value is NaN or infinite (no setting of ours takes one: a
+    learning rate of NaN would train on NaN from the first update)."""
+    if isinstance(node, dict):
+        for k, v in node.items():
+            _check_finite(v, f"{key}.{k}" if key else str(k))
+    elif isinstance(node, list):
+        for i, v in enumerate(node):
+            _check_finite(v, f"{key}[{i}]")
+    elif isinstance(node, float) and not math.isfinite(node):
+        raise ConfigError(f"{key}: {node} is not a finite number")
+
+
 def validate(cfg: DictConfig | dict[str, Any], shipped_only: bool = False) -> Config:
     """The composed config as schema objects; raises ConfigError naming the key of a bad value.
 
@@ -87,6 +101,7 @@ def validate(cfg: DictConfig | dict[str, Any], shipped_only: bool = False) -> Co
         structured = OmegaConf.merge(OmegaConf.structured(Config), cfg)
     except Exception as e:  # OmegaConf's type errors name the full key
         raise ConfigError(str(e)) from None
+    _check_finite(OmegaConf.to_container(structured, resolve=True))
     method = _method(structured.algo)
     for section, schema in SECTIONS.items():
         node = structured.algo[section]

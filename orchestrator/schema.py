@@ -44,6 +44,11 @@ LOCOMOTION = [
 ]
 
 
+# The largest seed a run takes: an unsigned 32-bit one. NumPy's SeedSequence refuses a negative seed, torch's
+# manual_seed one above 2**64 - 1, and a run seeds its components with seed * 1000 + offset (orchestrator.world).
+SEED_MAX = 2**32 - 1
+
+
 @dataclass
 class CharacterConfig:
     # MJCF file of the character; null uses the bundled humanoid.
@@ -411,6 +416,10 @@ class Config:
     stage_overrides: dict[str, list[str]] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
+        if not 0 <= self.seed <= SEED_MAX:
+            raise ConfigError(
+                f"seed: {self.seed} is outside 0 ... {SEED_MAX} (an unsigned 32-bit seed, which every generator takes)"
+            )
         if self.sim.backend == "warp" and self.terrain.kind != "flat":
             raise ConfigError(
                 f"terrain.kind: {self.terrain.kind} terrain is a height field, which sim.backend=warp cannot simulate "

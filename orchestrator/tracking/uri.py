@@ -41,6 +41,9 @@ def tracking_uri_error(uri: str) -> str | None:
             f"{redact(uri)!r} is an MLflow file store, which MLflow 3 opens only with MLFLOW_ALLOW_FILE_STORE=true; "
             "use sqlite:///PATH/mlflow.db (or leave tracking.uri unset: a SQLite store in the run directory)"
         )
+    if scheme in ("http", "https") and not urlparse(uri).hostname:
+        # http:/host parses as a path with no host: every request would fail and the run would spool for ever
+        return f"{redact(uri)!r} names no host (a server is {scheme}://HOST:PORT)"
     if not scheme or scheme.split("+")[0] in TRACKING_SCHEMES:
         return None
     plugins = {e.name for e in entry_points(group="mlflow.tracking_store")}

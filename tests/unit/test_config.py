@@ -109,6 +109,11 @@ def test_ablation_gp_names_its_loss_and_penalty_placement():
         ("algo.ppo.clip=0.1", r"algo.ppo.clip: the controlvae method .* has no ppo component"),
         ("algo.discriminator.w_gp=5", "algo.discriminator.w_gp: the controlvae method"),
         ("algo._target_=orchestrator.trainer.Trainer", "algo._target_: cannot use 'orchestrator.trainer.Trainer'"),
+        # Numbers no generator or optimiser takes (torch's Adam refuses lr=nan only when it is built, mid-run).
+        ("algo.world_model.lr=nan", r"algo.world_model.lr: nan is not a finite number"),
+        ("algo.vae.beta.start=inf", r"algo.vae.beta.start: inf is not a finite number"),
+        ("seed=-1", r"seed: -1 is outside 0 \.\.\. 4294967295"),
+        ("seed=4294967296", r"seed: 4294967296 is outside 0 \.\.\. 4294967295"),
     ],
 )
 def test_bad_values_are_refused_with_their_key(override, message):

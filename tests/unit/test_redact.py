@@ -86,6 +86,15 @@ def test_a_config_with_a_password_in_its_uri_gives_params_and_a_console_line_wit
     assert "'nosuch://u:***@h'" in problem and "Vq7p2LmN" not in problem
 
 
+def test_an_http_uri_without_a_host_is_refused():
+    """`http:/host` parses as a path with no host: the run would train with every record spooled for ever."""
+    assert (
+        tracking_uri_error("http:/127.0.0.1:5000")
+        == "'http:/127.0.0.1:5000' names no host (a server is http://HOST:PORT)"
+    )
+    assert tracking_uri_error("http://127.0.0.1:5000") is None
+
+
 def test_bad_artifact_settings_are_refused_with_the_key_named(tmp_path):
     with pytest.raises(ConfigError, match="tracking.artifact_timeout_s"):
         validate(compose(["scale=smoke", f"run_dir={tmp_path}", "tracking.artifact_timeout_s=0"]))
@@ -106,7 +115,7 @@ def test_the_tracker_writes_no_credential_of_its_store_in_params_tags_or_text(tm
     assert run.data.params["tracking.uri"] == "http://carol:***@mlflow.lab:5000"
     assert run.data.params["note"] == "pw ***" and run.data.tags["server"] == run.data.tags["origin"]
     stored = [p for p in (tmp_path / "mlartifacts").rglob("*") if p.is_file()]
-    assert {p.name for p in stored} == {"config.json", "overrides.yaml"}
+    assert {p.name for p in stored} == {"artifacts.sha256.json", "config.json", "overrides.yaml"}
     assert all("Wz4Tq9vB" not in p.read_text() for p in stored)
     assert "carol:***@" in next(p for p in stored if p.name == "overrides.yaml").read_text()
     assert b"Wz4Tq9vB" not in (tmp_path / "mlflow.db").read_bytes()
