@@ -5,7 +5,10 @@ Bad input ends the run with exit status 2 and one line on stderr naming the key,
 but that cannot be used (a malformed clip or character file, a checkpoint that does not fit, a Ray
 address where nothing answers: `orchestrator.preflight`; a run directory another command is running in),
 `stage error: ...` for an upstream stage. Ctrl-C (or SIGTERM) ends a run with exit status 130, its MLflow
-run KILLED, and one line: where it stopped and the command that resumes it.
+run KILLED, and one line: where it stopped and the command that resumes it. Any other exception ends it with
+exit status 1 and its traceback. No password of a URI in the overrides (`tracking.uri`, `runtime.address`)
+reaches any of these, Hydra's log lines or Hydra's record of the run (`.hydra/*.yaml`, scrubbed first thing):
+they are masked (`user:***@`); a resume line asks for the password through MLflow's environment variable.
 """
 
 from __future__ import annotations
@@ -13,15 +16,17 @@ from __future__ import annotations
 import shlex
 import signal
 import sys
+import traceback
 from pathlib import Path
 from typing import NoReturn
 
 import hydra
 from hydra.core.hydra_config import HydraConfig
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 from orchestrator.compose import register, validate
 from orchestrator.schema import ConfigError
+from orchestrator.tracking.uri import hide, scrub
 
 register()
 
@@ -45,9 +50,22 @@ def _is_multirun() -> bool:
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="config")
 def main(dcfg: DictConfig) -> float | None:
+    from orchestrator.build import scrub_hydra_record
     from orchestrator.sweep.callback import parent_of
 
+    for key in ("tracking.uri", "runtime.address"):  # Hydra logs the overrides when a job fails
+        hide(OmegaConf.select(dcfg, key, default=None))
+    scrub_hydra_record()  # written by Hydra before this call; kept as is were the run refused below
     parent = parent_of(HydraConfig.get().sweep.dir) if _is_multirun() else None
+    try:
+        return _main(dcfg, parent)
+    except SystemExit:
+        raise
+    except Exception:  # a bug, not bad input: its traceback, with the passwords masked
+        _fail(scrub(traceback.format_exc()).rstrip(), parent, code=1)
+
+
+def _main(dcfg: DictConfig, parent: dict | None) -> float | None:
     try:
         cfg = validate(dcfg)
     except ConfigError as e:
@@ -104,6 +122,8 @@ def _interrupted_line(cfg, e: KeyboardInterrupt) -> str:
         overrides = []
     kept = [o for o in overrides if not o.lstrip("+~").startswith(("run_dir=", "resume="))]
     command = shlex.join(["python", "-m", "orchestrator", *kept, f"run_dir={cfg.run_dir}", "resume=true"])
+    if scrub(command) != command:  # a password in an override: masked, so the command asks for it
+        command = f"MLFLOW_TRACKING_PASSWORD=... {scrub(command)}"
     run_dir = Path(getattr(e, "run_dir", cfg.run_dir))
     last = latest(run_dir / "checkpoints")
     saved = "from scratch: no checkpoint yet" if last is None else f"from {last.name}"
@@ -116,7 +136,7 @@ def _interrupted_line(cfg, e: KeyboardInterrupt) -> str:
 def _fail(line: str, parent: dict | None = None, status: str = "FAILED", code: int = 2) -> NoReturn:
     """One line and exit status `code`; a sweep point also marks the sweep's parent run `status` (the
     multirun ends here, so the sweep's own end, which would close it, never comes)."""
-    print(line, file=sys.stderr)
+    print(scrub(line), file=sys.stderr)
     if parent is not None:
         try:
             from orchestrator.tracking.query import set_terminated
