@@ -5,10 +5,11 @@ Bad input ends the run with exit status 2 and one line on stderr naming the key,
 but that cannot be used (a malformed clip or character file, a checkpoint that does not fit, a Ray
 address where nothing answers: `orchestrator.preflight`; a run directory another command is running in),
 `stage error: ...` for an upstream stage. Ctrl-C (or SIGTERM) ends a run with exit status 130, its MLflow
-run KILLED, and one line: where it stopped and the command that resumes it. Any other exception ends it with
-exit status 1 and its traceback. No password of a URI in the overrides (`tracking.uri`, `runtime.address`)
-reaches any of these, Hydra's log lines or Hydra's record of the run (`.hydra/*.yaml`, scrubbed first thing):
-they are masked (`user:***@`); a resume line asks for the password through MLflow's environment variable.
+run KILLED, and one line: where it stopped and the command that resumes it. Any other exception is Hydra's
+to report (exit status 1; a parallel sweep's other points finish first). No password of a URI in the
+overrides (`tracking.uri`, `runtime.address`) reaches any of these, the log, what Hydra writes to stderr or
+Hydra's record of the run (`.hydra/*.yaml`, scrubbed first thing): it is masked (`user:***@`), and a resume
+line asks for it through MLflow's environment variable.
 """
 
 from __future__ import annotations
@@ -16,7 +17,6 @@ from __future__ import annotations
 import shlex
 import signal
 import sys
-import traceback
 from pathlib import Path
 from typing import NoReturn
 
@@ -26,7 +26,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from orchestrator.compose import register, validate
 from orchestrator.schema import ConfigError
-from orchestrator.tracking.uri import hide, scrub
+from orchestrator.tracking.uri import ScrubbedStream, hide, scrub
 
 register()
 
@@ -51,21 +51,20 @@ def _is_multirun() -> bool:
 @hydra.main(version_base="1.3", config_path="../conf", config_name="config")
 def main(dcfg: DictConfig) -> float | None:
     from orchestrator.build import scrub_hydra_record
+
+    uris = [OmegaConf.select(dcfg, key, default=None) for key in ("tracking.uri", "runtime.address")]
+    for uri in uris:  # masked in every log record from now on
+        hide(uri)
+    if any(uri and scrub(uri) != uri for uri in uris) and not isinstance(sys.stderr, ScrubbedStream):
+        sys.stderr = ScrubbedStream(sys.stderr)  # and in what Hydra writes there itself when a job fails
+    scrub_hydra_record()  # written by Hydra before this call; kept as is were the run refused below
+    return _main(dcfg)
+
+
+def _main(dcfg: DictConfig) -> float | None:
     from orchestrator.sweep.callback import parent_of
 
-    for key in ("tracking.uri", "runtime.address"):  # Hydra logs the overrides when a job fails
-        hide(OmegaConf.select(dcfg, key, default=None))
-    scrub_hydra_record()  # written by Hydra before this call; kept as is were the run refused below
     parent = parent_of(HydraConfig.get().sweep.dir) if _is_multirun() else None
-    try:
-        return _main(dcfg, parent)
-    except SystemExit:
-        raise
-    except Exception:  # a bug, not bad input: its traceback, with the passwords masked
-        _fail(scrub(traceback.format_exc()).rstrip(), parent, code=1)
-
-
-def _main(dcfg: DictConfig, parent: dict | None) -> float | None:
     try:
         cfg = validate(dcfg)
     except ConfigError as e:

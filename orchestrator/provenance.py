@@ -5,8 +5,11 @@ the result does, including the inputs a config names only by path:
 
 - `inputs_digest(cfg)`: SHA-256 of the character file and of every clip file, by content (a clip
   edited in place, or another file at the same path, is a different stage);
-- `code_version(how)`: the package's version ("version", the default), or the git commit of the
-  checkout ("commit": every commit retrains every stage); see the README's section on stages;
+- `code_version(how)`: a digest of the source files that compute a stage's result ("source", the default:
+  `SOURCE`, so a change to a loss, a learner or a method retrains the stages it feeds, and a change elsewhere
+  does not), the package's version ("version": what we bump by hand, which went unbumped for 39 commits), or
+  the git commit of the checkout ("commit": every commit retrains every stage); see the README's section on
+  stages;
 - `git_commit()`: the checkout's commit, recorded as a tag on every run.
 """
 
@@ -22,7 +25,15 @@ from workers.body.character import HUMANOID_XML
 from workers.motion.formats import resolve
 
 PACKAGE = "mocap-orchestrator"
-CODE_VERSIONS = ("version", "commit")
+CODE_VERSIONS = ("source", "version", "commit")
+ROOT = Path(__file__).resolve().parents[1]  # the folder holding workers/ and orchestrator/
+# The source files whose code decides what a stage computes: the whole data plane, and the control plane's
+# methods, components, loop and the readers of upstream stages. Not in it: tracking, sweeps and their reports,
+# benchmarks, the cluster commands, the console.
+SOURCE = (
+    "workers", "orchestrator/algos", "orchestrator/components", "orchestrator/evaluation",
+    "orchestrator/trainer.py", "orchestrator/world.py", "orchestrator/upstream.py", "orchestrator/checkpoint.py",
+)  # fmt: skip
 
 
 def git_commit() -> str:
@@ -40,14 +51,29 @@ def git_commit() -> str:
         return "unknown"
 
 
-def code_version(how: str = "version") -> str:
-    """What of the code a stage hash covers: the package's version, or with "commit" the git commit."""
+def code_version(how: str = "source") -> str:
+    """What of the code a stage hash covers: the digest of its source files, the package's version, or the
+    git commit."""
+    if how == "source":
+        return f"source {source_digest(ROOT)}"
     if how == "commit":
         return f"commit {git_commit()}"
     try:
         return f"{PACKAGE} {metadata.version(PACKAGE)}"
     except metadata.PackageNotFoundError:
         return f"{PACKAGE} unknown"
+
+
+def source_digest(root: Path) -> str:
+    """SHA-256 over the `SOURCE` Python files under `root`, each by its path relative to `root` and its bytes."""
+    files: list[Path] = []
+    for name in SOURCE:
+        path = root / name
+        files.extend(sorted(path.rglob("*.py")) if path.is_dir() else [path] if path.is_file() else [])
+    h = hashlib.sha256()
+    for path in files:
+        h.update(f"{path.relative_to(root).as_posix()}\0{file_digest(path)}\0".encode())
+    return h.hexdigest()
 
 
 def file_digest(path: str | Path) -> str:

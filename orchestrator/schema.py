@@ -292,9 +292,10 @@ class TrackingConfig:
     # Upstream stages are reused from FINISHED runs of this run's own experiment and of the experiments named
     # here; "*" trusts every experiment of the store (anyone who can write to it could plant a stage).
     reuse_from: list[str] = field(default_factory=list)
-    # What of the code a stage hash covers: "version" (the package's; commits between versions reuse stages)
-    # or "commit" (the git commit: every commit retrains every stage).
-    stage_code: str = "version"
+    # What of the code a stage hash covers: "source" (a digest of the source files that compute stages,
+    # orchestrator.provenance.SOURCE: an edit there retrains, elsewhere not), "version" (the package's; commits
+    # between versions reuse stages) or "commit" (the git commit: every commit retrains every stage).
+    stage_code: str = "source"
     # Seconds an artifact upload (a checkpoint, a video) may wait on the store per request; other requests get 3 s.
     artifact_timeout_s: int = 60
     # Uploads in a row that time out before the run stops trying: the files wait in the run directory's

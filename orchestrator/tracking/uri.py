@@ -183,3 +183,18 @@ def _install_record_factory() -> None:
         return record
 
     logging.setLogRecordFactory(scrubbed)
+
+
+class ScrubbedStream:
+    """A text stream that masks URI passwords in what is written through it (`scrub`): stderr, for the lines
+    other code writes there itself (Hydra's "Error executing job with overrides: [...]", its tracebacks)."""
+
+    def __init__(self, stream: Any):
+        self._stream = stream
+
+    def write(self, text: str) -> int:
+        self._stream.write(scrub(text))
+        return len(text)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._stream, name)

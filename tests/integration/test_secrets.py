@@ -62,7 +62,7 @@ def assert_nowhere(proc: subprocess.CompletedProcess, hydra_dir: Path) -> None:
     [
         ("refused", ("runtime.learner_device=cuda",), 2, "config error: runtime.learner_device=cuda: no GPU"),
         ("interrupt", (), 130, "interrupted before training started (a resume starts from scratch"),
-        ("unexpected", (), 1, "RuntimeError: could not reach http://carol:***@127.0.0.1:"),
+        ("unexpected", (), 1, "Set the environment variable HYDRA_FULL_ERROR=1"),
     ],
 )
 def test_no_password_in_what_a_stopped_command_prints_or_writes(tmp_path, how, extra, code, last):
@@ -75,6 +75,12 @@ def test_no_password_in_what_a_stopped_command_prints_or_writes(tmp_path, how, e
     assert proc.returncode == code, proc.stderr[-2000:]
     assert proc.stderr.strip().splitlines()[-1].startswith(last), proc.stderr[-2000:]
     assert_nowhere(proc, hydra_dir)
+    if how == "unexpected":  # Hydra's own lines, masked
+        assert (
+            "Error executing job with overrides: ['scale=smoke', 'motion=walk', 'tracking.uri=http://carol:***@"
+            in proc.stderr
+        )
+        assert "RuntimeError: could not reach http://carol:***@127.0.0.1:" in proc.stderr
     if how == "interrupt":  # the resume command masks it and says where it goes instead
         assert "resume with: MLFLOW_TRACKING_PASSWORD=... python -m orchestrator" in proc.stderr
         assert "tracking.uri=http://carol:***@127.0.0.1:" in proc.stderr

@@ -11,6 +11,8 @@ from pathlib import Path
 import psutil
 from mlflow.tracking import MlflowClient
 
+from orchestrator import checkpoint
+
 ROOT = Path(__file__).resolve().parents[2]
 
 
@@ -25,14 +27,18 @@ def servers_on(port: int) -> list[psutil.Process]:
 
 
 def test_a_parallel_sweep_whose_point_fails_stops_its_server_and_fails_its_parent(tmp_path):
-    """Two points at once through joblib; seed=-1 passes composition and fails when the run seeds numpy."""
+    """Two points at once through joblib; the second fails at run time, at its first checkpoint: a file stands
+    where its checkpoints/ folder goes (nothing checks that before: it is not bad input anyone types)."""
     sweep_dir, store = tmp_path / "sweep", f"sqlite:///{tmp_path / 'store' / 'mlflow.db'}"
     (tmp_path / "store").mkdir()
+    (sweep_dir / "1").mkdir(parents=True)  # the second point's run directory (run_dir: Hydra's output dir)
+    (sweep_dir / "1" / "checkpoints").write_text("not a folder")
     command = [sys.executable, "-m", "orchestrator", "-m", "scale=smoke", "motion=walk", "runtime=local"]
     command += ["eval.video=false", "progress=false", "algo.loop.iterations=2", f"tracking.uri={store}"]
-    command += [f"hydra.sweep.dir={sweep_dir}", "hydra/launcher=joblib", "hydra.launcher.n_jobs=2", "seed=0,-1"]
+    command += [f"hydra.sweep.dir={sweep_dir}", "hydra/launcher=joblib", "hydra.launcher.n_jobs=2", "seed=0,1"]
     proc = subprocess.run(command, cwd=ROOT, capture_output=True, text=True, timeout=600)
     assert proc.returncode != 0, proc.stdout[-2000:]
+    assert "FileExistsError" in proc.stderr or "NotADirectoryError" in proc.stderr, proc.stderr[-2000:]
     info = json.loads((sweep_dir / "sweep.json").read_text())
     assert info["store"] == store and info["uri"].startswith("http://127.0.0.1:")  # a server in front of SQLite
     assert servers_on(int(info["uri"].rsplit(":", 1)[1])) == []
@@ -49,12 +55,18 @@ def test_a_parallel_sweep_whose_point_fails_stops_its_server_and_fails_its_paren
 
 
 def test_a_sequential_sweep_whose_point_fails_fails_its_parent(tmp_path):
-    """The basic launcher runs the points in this process; the failing one raises after the other ran."""
+    """The basic launcher runs the points in this process; the first fails at run time (its run directory is
+    held by another command), and the sweep ends there."""
     sweep_dir = tmp_path / "sweep"
+    (sweep_dir / "0").mkdir(parents=True)
+    held = checkpoint.lock_run_dir(sweep_dir / "0")
     command = [sys.executable, "-m", "orchestrator", "-m", "scale=smoke", "motion=walk", "runtime=local"]
     command += ["eval.video=false", "progress=false", "algo.loop.iterations=2", f"hydra.sweep.dir={sweep_dir}"]
-    command += ["seed=-1,0"]
-    proc = subprocess.run(command, cwd=ROOT, capture_output=True, text=True, timeout=600)
+    command += ["seed=0,1"]
+    try:
+        proc = subprocess.run(command, cwd=ROOT, capture_output=True, text=True, timeout=600)
+    finally:
+        held.close()
     assert proc.returncode != 0, proc.stdout[-2000:]
     info = json.loads((sweep_dir / "sweep.json").read_text())
     client = MlflowClient(info["store"])

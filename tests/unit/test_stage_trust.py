@@ -159,6 +159,26 @@ def test_the_stage_hash_follows_the_simulator_engine_and_stages_above_run_on_the
     assert expert.sim.backend == "warp" and expert.algo.name == "tracker"
 
 
+def test_the_stage_hash_follows_the_source_of_the_code_that_computes_stages(tmp_path):
+    """A change to a loss changes the code digest a stage hash holds (the default, tracking.stage_code=source);
+    a change to code that computes no stage (the sweep's report) does not."""
+    from orchestrator import provenance
+
+    for name in ("workers", "orchestrator"):
+        shutil.copytree(provenance.ROOT / name, tmp_path / name, ignore=shutil.ignore_patterns("__pycache__"))
+    before = provenance.source_digest(tmp_path)
+    assert before == provenance.source_digest(provenance.ROOT)  # by relative path and contents only
+    report = tmp_path / "orchestrator" / "sweep" / "report.py"
+    report.write_text(report.read_text() + "\n# a comment\n")
+    assert provenance.source_digest(tmp_path) == before
+    kl = tmp_path / "workers" / "losses" / "kl.py"
+    kl.write_text(kl.read_text().replace("0.5", "0.49", 1))
+    assert provenance.source_digest(tmp_path) != before
+    cfg = config(tmp_path)
+    assert cfg.tracking.stage_code == "source"
+    assert stages.config_hash(cfg) != stages.config_hash(config(tmp_path, "tracking.stage_code=version"))
+
+
 def resolve_character():
     from workers.body.character import HUMANOID_XML
 
@@ -174,7 +194,7 @@ def test_every_spec_of_the_chain_is_checked_before_any_stage_trains(store, tmp_p
     with pytest.raises(ConfigError, match=r"algo.needs.demos: cannot compose stage 'nosuchmethod'"):
         stages.resolve(cfg, uri, tmp_path, "mine", lambda c, a, h: trained.append(h), log=lambda m: None)
     assert trained == []
-    with pytest.raises(ConfigError, match="tracking.stage_code must be one of version, commit"):
+    with pytest.raises(ConfigError, match="tracking.stage_code must be one of source, version, commit"):
         config(tmp_path, "tracking.stage_code=sometimes")
 
 
