@@ -75,9 +75,10 @@ def hydra_record() -> list[Path]:
         hc = HydraConfig.get()
     except ValueError:
         return []
-    if not hc.output_subdir:
+    output_dir = OmegaConf.select(hc, "runtime.output_dir", default=None, throw_on_missing=False)
+    if not hc.output_subdir or not output_dir:  # composed by hydra.compose, not run by Hydra: no record
         return []
-    where = Path(hc.runtime.output_dir) / hc.output_subdir
+    where = Path(output_dir) / hc.output_subdir
     return [where / name for name in ("config.yaml", "overrides.yaml", "hydra.yaml") if (where / name).exists()]
 
 

@@ -3,7 +3,7 @@
 
 The runs are made by a sweep (the rule fixes the seeds and the point before any of them):
 
-    python -m orchestrator algo=physicsvae scale=cpu algo.offline.precision=float32,bfloat16 seed=0,1,2,3,4,5 -m \\
+    python -m orchestrator -m algo=physicsvae scale=cpu algo.offline.precision=float32,bfloat16 seed=0,1,2,3,4,5 \\
         tracking.uri=<the store ablation_kl trained its stages in>
 
 and judged here, per seed paired: the log ratio bfloat16 / float32 of each measure, its paired t interval

@@ -46,7 +46,8 @@ def test_spooled_records_reach_a_server_started_later(tmp_path):
         assert run.data.tags["sweep_id"] == "s1" and run.data.params == {"algo.alpha": "0.0003"}
         steps = [(m.step, m.value) for m in client.get_metric_history(tracker.run_id, "vae/loss")]
         assert sorted(steps) == [(s * 1000, float(s)) for s in range(6)]
-        assert {a.path for a in client.list_artifacts(tracker.run_id)} == {"config.json"}
+        assert {a.path for a in client.list_artifacts(tracker.run_id)} == {"artifacts.sha256.json", "config.json"}
+        assert run.data.tags["artifacts_sha256"]  # complete: the spooled upload landed before the tag
     assert not server.running()
 
 
