@@ -178,9 +178,9 @@ def load(path: str | Path) -> dict[str, Any]:
             state = torch.load(path, weights_only=True, map_location="cpu")
     except Exception as e:
         raise CheckpointError(path, _unreadable(path, e)) from None
-    check_digest(path)  # after the load, whose messages say more of a file that is truncated or not ours
     if not isinstance(state, dict):
         raise CheckpointError(path, f"not a checkpoint (it holds a {type(state).__name__}, not a dict of states)")
+    check_digest(path)  # after the load's own checks, which say more of a file that is truncated or not ours
     return _decode(state)
 
 
