@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import re
 from pathlib import Path
 
 import mujoco
@@ -393,6 +394,12 @@ BAD_FILES = {
     "bad_offset": (lambda t: t.replace("OFFSET 0 0 0", "OFFSET 0 zero 0", 1), "OFFSET", None),
     "unclosed": (lambda t: t.replace("}\nMOTION", "MOTION"), "not closed", None),
     "bad_frame_time": (lambda t: t.replace("Frame Time:", "Frame Time: 0 #"), "Frame Time", None),
+    # A frame time of hours: the clip resampled at 30 Hz would be billions of frames (a traceback, or no memory).
+    "absurd_frame_time": (
+        lambda t: re.sub(r"Frame Time: \S+", "Frame Time: 3600", t),
+        "Frame Time 3600 s makes its 39 frames last 140400 s; motion capture runs at 1 to 10000 frames a second",
+        None,
+    ),
 }
 
 

@@ -70,6 +70,8 @@ from workers.motion.formats.bvh_retarget import END_SITES, GROUND_HEIGHT, ground
 from workers.motion.formats.deepmimic import Y_TO_Z
 
 log = logging.getLogger(__name__)
+# The frame times a BVH file may declare: 1 to 10,000 frames a second (mocap runs at 30-480).
+FRAME_TIME_MIN, FRAME_TIME_MAX = 1e-4, 1.0
 
 SAVE_UNITS_PER_METRE = 100.0  # `save` writes centimetres
 SAVE_ROTATION_ORDER = "ZXY"
@@ -262,6 +264,13 @@ def parse(path: str | Path) -> tuple[list[Joint], np.ndarray, float]:
         raise ClipError(path, f"MOTION: expected 'Frames: N' then 'Frame Time: seconds > 0', got {head[:2]}")
     frame_time = float(m_time.group(1))
     declared, data = int(m_frames.group(1)), after[2:]
+    if not FRAME_TIME_MIN <= frame_time <= FRAME_TIME_MAX:  # resampled, its frames would fill the memory
+        raise ClipError(
+            path,
+            f"Frame Time {frame_time:g} s makes its {declared} frames last {declared * frame_time:g} s; motion capture "
+            f"runs at {1 / FRAME_TIME_MAX:g} to {1 / FRAME_TIME_MIN:g} frames a second (Frame Time {FRAME_TIME_MIN:g} "
+            f"to {FRAME_TIME_MAX:g} s)",
+        )
     if declared == 0 or not data:
         raise ClipError(path, "no frames")
     if len(data) < declared:
