@@ -21,6 +21,7 @@ from functools import lru_cache
 from importlib import metadata
 from pathlib import Path
 
+from orchestrator.tracking.manifest import sha256
 from workers.body.character import HUMANOID_XML
 from workers.motion.formats import resolve
 
@@ -85,11 +86,7 @@ def file_digest(path: str | Path) -> str:
 
 @lru_cache(maxsize=1024)
 def _digest(path: str, size: int, mtime_ns: int) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
+    return sha256(path)
 
 
 def inputs_digest(character_xml: str | None, clips: list[str]) -> dict[str, object]:
