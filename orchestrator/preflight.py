@@ -7,7 +7,8 @@ anything is written to the run directory, so that bad input leaves everything al
 - the character file is our humanoid's skeleton (`workers.body.character`) and every clip loads and is
   plausible (`workers.motion.clip.check_plausible`): the same checks as `python -m orchestrator.clips check`;
 - `tracking.uri` has a scheme MLflow knows (checked at composition too; a sweep point takes its parent's),
-  and an MLflow server there that asks for a user accepts this process's (MLFLOW_TRACKING_USERNAME/PASSWORD);
+  and an MLflow server there that asks for a user accepts this process's (MLFLOW_TRACKING_USERNAME/PASSWORD)
+  and lets it create runs in the run's experiment (`tracking.experiment`, else the preset's name);
 - `runtime.address` answers within `runtime.connect_timeout_s` (runtime=ray);
 - a GPU asked for (`runtime.learner_device=cuda`, `runtime.learner_gpus`) is one this machine has (the
   local runtime, or a Ray started for the run) or, at a cluster's `runtime.address`, one the cluster has;
@@ -23,7 +24,6 @@ anything is written to the run directory, so that bad input leaves everything al
 
 from __future__ import annotations
 
-import base64
 import json
 import os
 import urllib.error
@@ -38,6 +38,7 @@ from orchestrator import checkpoint
 from orchestrator.algos.base import method_class
 from orchestrator.runtime.base import uses_ray
 from orchestrator.schema import Config, ConfigError
+from orchestrator.tracking.identity import auth_header, experiment_access, server_url, whoami
 from orchestrator.tracking.uri import redact, store_uri, tracking_uri_error
 from orchestrator.trainer import LoopState
 from orchestrator.world import load_character, load_library
@@ -56,6 +57,7 @@ def check(cfg: Config) -> None:
         if problem:
             raise ConfigError(f"tracking.uri: {problem}")
         tracking_server(cfg.tracking.uri)
+        own_experiment(cfg.tracking.uri, cfg.tracking.experiment or cfg.preset)
     learner_devices(cfg)
     sim_device(cfg)
     r = cfg.runtime
@@ -84,11 +86,9 @@ def tracking_server(uri: str, timeout_s: float = 3.0) -> None:
     ever. A server that does not answer is left to the tracker, which spools until it is back."""
     if urlsplit(uri).scheme not in ("http", "https"):
         return
-    user, password = os.environ.get("MLFLOW_TRACKING_USERNAME"), os.environ.get("MLFLOW_TRACKING_PASSWORD")
-    headers = {}
-    if user is not None and password is not None:
-        headers["Authorization"] = "Basic " + base64.b64encode(f"{user}:{password}".encode()).decode()
-    url = f"{uri.rstrip('/')}/api/2.0/mlflow/experiments/search?max_results=1"
+    user = urlsplit(uri).username or os.environ.get("MLFLOW_TRACKING_USERNAME")
+    headers = auth_header(uri)
+    url = f"{server_url(uri)}/api/2.0/mlflow/experiments/search?max_results=1"
     try:
         urllib.request.urlopen(urllib.request.Request(url, headers=headers), timeout=timeout_s).close()
     except urllib.error.HTTPError as e:
@@ -104,6 +104,21 @@ def tracking_server(uri: str, timeout_s: float = 3.0) -> None:
             ) from None
     except (OSError, ValueError):
         return  # not answering (yet): the tracker spools
+
+
+def own_experiment(uri: str, experiment: str) -> None:
+    """InputError when the authenticated MLflow server at `uri` would refuse this user's run in `experiment`
+    (PERMISSION_DENIED: another user made it, and it is only readable to this one), before anything trains."""
+    who = whoami(uri)
+    if who is None:
+        return
+    access = experiment_access(uri, who, experiment)
+    if access.experiment_id is not None and not access.writable:
+        raise InputError(
+            f"tracking.experiment={experiment!r}: user {who.user!r} may not create runs in it on {redact(uri)} "
+            f"(the server gives {access.permission}; another user made it): name an experiment of your own, and "
+            "this one in tracking.reuse_from to reuse its stages"
+        )
 
 
 def learner_devices(cfg: Config) -> None:

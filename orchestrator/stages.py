@@ -16,13 +16,16 @@ only their paths) and the code's version (`tracking.stage_code`: the package's v
 git commit; `orchestrator.provenance`), and nothing that does not change the result (`run_dir`,
 `progress`, `tracking`, `preset`, how the runtime is hosted).
 
-Resolving a need looks for a FINISHED run with that hash in the run's own experiment and in
-those `tracking.reuse_from` names (never, unless it says "*", in any experiment of a shared
-store: anyone who can write to the store could otherwise plant a run with a hash that public
-configs predict): found, it is reused, its artifacts downloaded, and its provenance (run,
-experiment, user, git commit) recorded as tags on the run that reuses it; not found (or only
-FAILED, or unfinished), the stage runs now, in this process, into the same store (by the
-`train` function the caller hands in: `orchestrator.build.train_stage`). Every spec of the
+Resolving a need looks for a FINISHED run with that hash whose files all landed where the run trusts
+(`trusted_sources`): its own experiment and those `tracking.reuse_from` names, never, unless it says
+"*", any experiment of a shared store (anyone who can write to it could otherwise plant a run with a
+hash that public configs predict). On an authenticated server (`orchestrator.tracking.identity`) its
+own experiment counts only if the server gives this user MANAGE on it (its creator has it), and there
+only runs recorded as this user's; an experiment `tracking.reuse_from` names is trusted whoever wrote
+it, and the line that reuses a run says whose it is. Found, a run is reused, its artifacts downloaded
+and checked, and its provenance (run, experiment, user, git commit) recorded as tags on the run that
+reuses it; not found (or only FAILED, or unfinished), the stage runs now, in this process, into the
+same store (by the `train` function the caller hands in: `orchestrator.build.train_stage`). Every spec of the
 whole chain is composed and checked (`plan`) before any stage trains. A sweep resolves its
 points' needs once, before the points (`orchestrator.sweep`), so they all find the same stages.
 
@@ -37,7 +40,7 @@ import hashlib
 import json
 import re
 from collections.abc import Callable
-from dataclasses import asdict
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
@@ -47,6 +50,7 @@ from orchestrator import checkpoint
 from orchestrator.compose import CONF_DIR, compose, find_method, validate
 from orchestrator.provenance import code_version, inputs_digest
 from orchestrator.schema import Config, ConfigError
+from orchestrator.tracking import identity
 from orchestrator.tracking.query import complete_runs, find_finished
 from orchestrator.tracking.uri import redact
 from orchestrator.upstream import RUN_ID, StageError, Upstream, existing_run, manifest_digest, provenance, short_error
@@ -132,9 +136,43 @@ def plan(cfg: Config, seen: tuple[str, ...] = ()) -> None:
         plan(upstream_config(cfg, spec, role), (*seen, cfg.algo.name))
 
 
-def trusted_experiments(cfg: Config, experiment: str) -> list[str]:
-    """Where this run may reuse stages from: its own experiment and `tracking.reuse_from` ("*": any)."""
-    return [experiment, *cfg.tracking.reuse_from]
+@dataclass(frozen=True)
+class Trust:
+    """Where a run may reuse stages from: `experiments` ("*": any), of which those in `only` only runs recorded
+    as that user's; `note` says why the run's own experiment is left out, when it is."""
+
+    experiments: list[str]
+    only: dict[str, str]
+    note: str = ""
+
+    def where(self, uri: str) -> str:
+        """The experiments, as the line that trains a stage names them."""
+        if "*" in self.experiments:
+            return f"any experiment of {redact(uri)}"
+        named = ", ".join(
+            f"{e!r} (runs by {self.only[e]})" if e in self.only else repr(e) for e in dict.fromkeys(self.experiments)
+        )
+        return f"experiment(s) {named or 'none'} of {redact(uri)}{self.note}"
+
+
+def trusted_sources(cfg: Config, uri: str, experiment: str) -> Trust:
+    """Where this run may reuse stages from: its own experiment and `tracking.reuse_from` ("*": any). On a server
+    that authenticates its users, its own experiment only if the server gives this user MANAGE on it, and there only
+    the user's own runs (an admin's: any run there); an experiment reuse_from names is trusted whoever made it."""
+    named = list(cfg.tracking.reuse_from)
+    who = identity.whoami(uri)
+    # An admin may write anywhere, as on a store without users (the private server of a parallel sweep, in front of
+    # its own SQLite file, is run as its admin).
+    if who is None or who.admin or experiment in named or "*" in named:
+        return Trust([experiment, *named], {})
+    access = identity.experiment_access(uri, who, experiment)
+    if access.permission == "MANAGE":
+        return Trust([experiment, *named], {experiment: who.user})
+    note = (
+        f"; not experiment {experiment!r}, which is not {who.user}'s (the server gives them {access.permission} on "
+        "it, not MANAGE): name it in tracking.reuse_from to trust its runs"
+    )
+    return Trust(named, {}, note)
 
 
 def resolve(cfg: Config, uri: str, workdir: Path, experiment: str, train: TrainStage, log=print) -> dict[str, Upstream]:
@@ -153,15 +191,21 @@ def ensure(
     cache = workdir / "upstream" / role
     run_id = RUN_ID.fullmatch(spec.strip())
     if run_id:
-        return existing_run(role, run_id.group(1), uri, cache)
+        given = existing_run(role, run_id.group(1), uri, cache)
+        origin = given.provenance
+        log(
+            f"stage {role}: using run {given.run_id} as algo.needs gives it, of experiment {origin['experiment']!r}, "
+            f"user {origin['user']}, commit {origin['git_commit'][:12]}"
+        )
+        return given
     up = upstream_config(cfg, spec, role)
     above = _resolve(up, uri, workdir, experiment, train, log)
     h = config_hash(up, {r: u.stage_hash for r, u in above.items()})
     lineage = {r: u.run_id for r, u in above.items()}
     for r, u in above.items():
         lineage.update({f"{r}.{k}": v for k, v in u.lineage.items()})
-    trusted = trusted_experiments(cfg, experiment)
-    for found, digest in complete_runs(uri, h, trusted):
+    trust = trusted_sources(cfg, uri, experiment)
+    for found, digest in complete_runs(uri, h, trust.experiments, only=trust.only):
         origin = provenance(role, uri, found)
         stage = Upstream(role, up.algo.name, found, h, uri, cache, True, lineage, origin, digest)
         try:
@@ -169,9 +213,10 @@ def ensure(
         except StageError as e:
             log(f"{e}; not used")
             continue
+        named = " (named in tracking.reuse_from)" if origin["experiment"] != experiment else ""
         log(
-            f"stage {role}: reusing {up.algo.name} run {found} (hash {h}) of experiment {origin['experiment']!r}, "
-            f"user {origin['user']}, commit {origin['git_commit'][:12]}"
+            f"stage {role}: reusing {up.algo.name} run {found} (hash {h}) of experiment {origin['experiment']!r}"
+            f"{named}, user {origin['user']}, commit {origin['git_commit'][:12]}"
         )
         return stage
     up.run_dir = str(workdir / "stages" / f"{up.algo.name}-{h[:8]}")
@@ -181,10 +226,7 @@ def ensure(
     up.tracking.experiment = experiment
     up.tracking.run_name = f"{up.algo.name} stage {h[:8]}"
     how = "resuming it from its last checkpoint" if up.resume else "training it"
-    named = ", ".join(repr(e) for e in dict.fromkeys(trusted))
-    where = "any experiment" if "*" in trusted else f"experiment(s) {named}"
-    where = f"{where} of {redact(uri)}"
-    log(f"stage {role}: no finished {up.algo.name} run with hash {h} in {where}; {how} in {up.run_dir}")
+    log(f"stage {role}: no finished {up.algo.name} run with hash {h} in {trust.where(uri)}; {how} in {up.run_dir}")
     new_id = train(up, above, h)
     origin, digest = provenance(role, uri, new_id), manifest_digest(role, uri, new_id)
     return Upstream(role, up.algo.name, new_id, h, uri, cache, False, lineage, origin, digest)
@@ -193,7 +235,7 @@ def ensure(
 def pending(cfg: Config, uri: str, experiment: str) -> list[Config]:
     """The stages of `cfg`'s chain that `resolve` would train now: those no FINISHED run with their hash holds in
     a trusted experiment, upstream first, each once."""
-    trusted, todo, seen = trusted_experiments(cfg, experiment), [], set()
+    trust, todo, seen = trusted_sources(cfg, uri, experiment), [], set()
 
     def hashes_above(c: Config) -> dict[str, str]:
         above = {}
@@ -204,7 +246,7 @@ def pending(cfg: Config, uri: str, experiment: str) -> list[Config]:
                 continue
             up = upstream_config(c, spec, role)
             above[role] = h = config_hash(up, hashes_above(up))
-            if h not in seen and not find_finished(uri, h, trusted):
+            if h not in seen and not find_finished(uri, h, trust.experiments, trust.only):
                 todo.append(up)
             seen.add(h)
         return above

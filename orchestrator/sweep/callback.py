@@ -27,6 +27,7 @@ import atexit
 import json
 import os
 import socket
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -35,7 +36,7 @@ from omegaconf import DictConfig
 
 from orchestrator.cluster.files import write_secret
 from orchestrator.sweep import amp, physicsvae, report, tasks
-from orchestrator.tracking.uri import hide, redact, scrub_file, store_uri
+from orchestrator.tracking.uri import hide, redact, scrub, scrub_file, store_uri
 
 SWEEP_FILE = "sweep.json"
 SEQUENTIAL_LAUNCHER = "hydra._internal.core_plugins.basic_launcher.BasicLauncher"
@@ -147,6 +148,7 @@ class SweepCallback(Callback):
             os.environ.update(self.server.credentials)
             uri = self.server.uri
             print(f"sweep: parallel jobs log through the tracking server at {uri}")
+        refuse_unwritable(uri, experiment)
         self.logger = MlflowLogger(
             uri=uri,
             experiment=experiment,
@@ -292,6 +294,18 @@ class SweepCallback(Callback):
             look += f" --artifacts-destination {sqlite_artifacts(store)}"
         where = f"MLflow: {redact(store)}" if store.startswith("http") else f"MLflow UI: {look}"
         print(f"{where}  (sweep {self.logger.run_id})")
+
+
+def refuse_unwritable(uri: str, experiment: str) -> None:
+    """One line and exit 2 when the server would refuse the sweep's parent run in `experiment`
+    (`orchestrator.preflight.own_experiment`), before any point or stage starts."""
+    from orchestrator.preflight import InputError, own_experiment
+
+    try:
+        own_experiment(uri, experiment)
+    except InputError as e:
+        print(f"error: {scrub(str(e))}", file=sys.stderr)
+        sys.exit(2)
 
 
 def sqlite_artifacts(store: str) -> Path:

@@ -33,11 +33,14 @@ Choices worth knowing:
 - Every file submitted is listed with its SHA-256 (`orchestrator.tracking.manifest`); a run that ends FINISHED
   uploads the list last (`artifacts.sha256.json`) and then, behind every upload still spooled, sets the tag
   `artifacts_sha256`: what a stage needs to be reused.
+- A new run is recorded as the user an authenticated server knows this process as (`mlflow.user`), so that
+  `orchestrator.stages` can tell this user's runs from others'; elsewhere as the machine's login name.
 - One live tracker per run directory: the spool is guarded by a lock within the process only.
 """
 
 from __future__ import annotations
 
+import getpass
 import logging
 import threading
 import time
@@ -53,6 +56,7 @@ from orchestrator.tracking.base import (
     store_artifacts,
     truncate,
 )
+from orchestrator.tracking.identity import whoami
 from orchestrator.tracking.manifest import MANIFEST_FILE, Manifest, text_digest
 from orchestrator.tracking.spool import (  # sets MLflow's client defaults before mlflow is imported
     ARTIFACT_DIR,
@@ -76,6 +80,18 @@ MAX_TAG_VALUE_LENGTH = 8000  # mlflow.utils.validation.MAX_TAG_VAL_LENGTH
 
 def _now_ms() -> int:
     return int(time.time() * 1000)
+
+
+def run_user(uri: str) -> str:
+    """Who a new run is recorded as (`mlflow.user`, the run's user): the user an authenticated server knows this
+    process as (what `orchestrator.stages` trusts), else this machine's login name."""
+    who = whoami(uri)
+    if who is not None:
+        return who.user
+    try:
+        return getpass.getuser()
+    except (KeyError, OSError):  # no login name for this uid (a container's)
+        return "unknown"
 
 
 class MlflowLogger(RunLogger):
@@ -145,6 +161,7 @@ class MlflowLogger(RunLogger):
         self._key = f"{PENDING}{uuid.uuid4().hex}"
         if parent_run_id is not None:
             tags["mlflow.parentRunId"] = parent_run_id
+        tags.setdefault("mlflow.user", run_user(self.uri))
         artifacts = (self.run_dir / "mlartifacts").as_uri() if uri is None else store_artifacts(uri)
         run_name = None if run_name is None else scrub(run_name)  # a run name made from the overrides
         create = {"experiment": experiment, "artifact_location": artifacts, "run_name": run_name, "tags": tags}

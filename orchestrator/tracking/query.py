@@ -61,31 +61,37 @@ def artifact_root(uri: str, run_id: str) -> str:
     return MlflowClient(uri).get_run(run_id).info.artifact_uri.removeprefix("file://")
 
 
-def find_finished(uri: str, stage_hash: str, experiments: list[str]) -> str | None:
+def find_finished(
+    uri: str, stage_hash: str, experiments: list[str], only: dict[str, str] | None = None
+) -> str | None:
     """The newest complete run with this stage hash in the named experiments (`complete_runs`)."""
-    runs = complete_runs(uri, stage_hash, experiments, limit=1)
+    runs = complete_runs(uri, stage_hash, experiments, limit=1, only=only)
     return runs[0][0] if runs else None
 
 
-def complete_runs(uri: str, stage_hash: str, experiments: list[str], limit: int = 5) -> list[tuple[str, str]]:
+def complete_runs(
+    uri: str, stage_hash: str, experiments: list[str], limit: int = 5, only: dict[str, str] | None = None
+) -> list[tuple[str, str]]:
     """(run id, manifest digest) of the newest `limit` FINISHED runs with this stage hash whose artifacts all
     landed (the tag `manifest.COMPLETE_TAG`), newest first, in the named experiments ("*": any experiment of the
-    store; names the store does not have are skipped). Deleted runs are never among them."""
+    store; names the store does not have are skipped); in an experiment `only` maps to a user, only runs recorded
+    as that user's. Deleted runs are never among them."""
     client = MlflowClient(uri)
     if "*" in experiments:
-        ids = [e.experiment_id for e in client.search_experiments()]
+        found = list(client.search_experiments())
     else:
-        found = (client.get_experiment_by_name(name) for name in dict.fromkeys(experiments))
-        ids = [e.experiment_id for e in found if e is not None]
-    if not ids:
+        found = [e for e in (client.get_experiment_by_name(n) for n in dict.fromkeys(experiments)) if e is not None]
+    users = {e.experiment_id: (only or {}).get(e.name) for e in found}
+    if not users:
         return []
     runs = client.search_runs(
-        ids,
+        list(users),
         filter_string=f"tags.stage_hash = '{stage_hash}' and attributes.status = 'FINISHED'",
         order_by=["attributes.start_time DESC"],
         max_results=100,
     )
-    complete = [(r.info.run_id, r.data.tags[COMPLETE_TAG]) for r in runs if r.data.tags.get(COMPLETE_TAG)]
+    mine = [r for r in runs if users[r.info.experiment_id] in (None, r.info.user_id)]
+    complete = [(r.info.run_id, r.data.tags[COMPLETE_TAG]) for r in mine if r.data.tags.get(COMPLETE_TAG)]
     return complete[:limit]
 
 
