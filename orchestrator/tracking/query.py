@@ -61,9 +61,7 @@ def artifact_root(uri: str, run_id: str) -> str:
     return MlflowClient(uri).get_run(run_id).info.artifact_uri.removeprefix("file://")
 
 
-def find_finished(
-    uri: str, stage_hash: str, experiments: list[str], only: dict[str, str] | None = None
-) -> str | None:
+def find_finished(uri: str, stage_hash: str, experiments: list[str], only: dict[str, str] | None = None) -> str | None:
     """The newest complete run with this stage hash in the named experiments (`complete_runs`)."""
     runs = complete_runs(uri, stage_hash, experiments, limit=1, only=only)
     return runs[0][0] if runs else None
