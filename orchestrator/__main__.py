@@ -15,6 +15,7 @@ line asks for it through MLflow's environment variable.
 from __future__ import annotations
 
 import shlex
+import shutil
 import signal
 import sys
 from pathlib import Path
@@ -65,10 +66,11 @@ def _main(dcfg: DictConfig) -> float | None:
     from orchestrator.sweep.callback import parent_of
 
     parent = parent_of(HydraConfig.get().sweep.dir) if _is_multirun() else None
+    record = None if parent is not None else _own_record(dcfg)
     try:
         cfg = validate(dcfg)
     except ConfigError as e:
-        _fail(f"config error: {e}", parent)
+        _fail(f"config error: {e}", parent, record=record)
     if cfg.tracking.run_name is None:
         cfg.tracking.run_name = _run_name(cfg)
     from orchestrator.build import run
@@ -100,7 +102,7 @@ def _main(dcfg: DictConfig) -> float | None:
         summary = run(cfg, parent_run_id=parent["parent_run_id"] if parent else None)
     except tuple(prefixes) as e:
         prefix = next(p for kind, p in prefixes.items() if isinstance(e, kind))
-        _fail(f"{prefix}{e}", parent)
+        _fail(f"{prefix}{e}", parent, record=record)
     except KeyboardInterrupt as e:  # orchestrator.build.Interrupted once training has started
         _fail(_interrupted_line(cfg, e), parent, status="KILLED", code=130)
     return summary.get("eval/time_until_fall_mean")
@@ -132,10 +134,34 @@ def _interrupted_line(cfg, e: KeyboardInterrupt) -> str:
     return f"interrupted {where} (a resume starts {saved}); resume with: {command}"
 
 
-def _fail(line: str, parent: dict | None = None, status: str = "FAILED", code: int = 2) -> NoReturn:
+def _own_record(dcfg: DictConfig) -> Path | None:
+    """Hydra's output folder when it is the run directory (`run_dir=` given, or neither given) and holds nothing but
+    Hydra's record of this command (a new run directory): what a refused command removes, leaving no trace."""
+    try:
+        out = Path(HydraConfig.get().runtime.output_dir).resolve()
+        run_dir = Path(str(OmegaConf.select(dcfg, "run_dir"))).resolve()
+    except Exception:  # noqa: BLE001 - outside a Hydra run (tests call main's body): nothing of Hydra's to remove
+        return None
+    ours = {".hydra", f"{HydraConfig.get().job.name}.log"}
+    return out if out == run_dir and out.is_dir() and {p.name for p in out.iterdir()} <= ours else None
+
+
+def _fail(
+    line: str, parent: dict | None = None, status: str = "FAILED", code: int = 2, record: Path | None = None
+) -> NoReturn:
     """One line and exit status `code`; a sweep point also marks the sweep's parent run `status` (the
-    multirun ends here, so the sweep's own end, which would close it, never comes)."""
+    multirun ends here, so the sweep's own end, which would close it, never comes). `record`: the new run
+    directory Hydra made for a command refused before it started (`_own_record`), removed."""
     print(scrub(line), file=sys.stderr)
+    if record is not None and {p.name for p in record.iterdir()} <= {".hydra", f"{HydraConfig.get().job.name}.log"}:
+        shutil.rmtree(record, ignore_errors=True)
+        for folder in record.parents:  # outputs/<preset>/ made for it, when empty now
+            if folder == Path.cwd().resolve() or not folder.is_relative_to(Path.cwd().resolve()):
+                break
+            try:
+                folder.rmdir()
+            except OSError:
+                break
     if parent is not None:
         try:
             from orchestrator.tracking.query import set_terminated

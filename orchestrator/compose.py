@@ -58,7 +58,17 @@ def full_key(message: str) -> str:
     return message
 
 
+def _run_dir_or(default: str, *, _root_: DictConfig) -> str:
+    """Hydra's output folder (`hydra.run.dir`): the run directory the command names (`run_dir=...`), so that Hydra's
+    own record goes there and nothing into the working directory; else `default` (outputs/<preset>/<time>), which
+    is then also the run directory."""
+    if "run_dir" in _root_ and not OmegaConf.is_interpolation(_root_, "run_dir") and _root_.run_dir:
+        return str(_root_.run_dir)
+    return default
+
+
 def register() -> None:
+    OmegaConf.register_new_resolver("run_dir_or", _run_dir_or, replace=True)
     cs = ConfigStore.instance()
     schema = OmegaConf.structured(Config)
     # A map given whole on the command line (`motion.joint_map='{Hips: pelvis}'`) adds keys: open under struct mode.

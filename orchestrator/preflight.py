@@ -251,7 +251,8 @@ def resume_checkpoint(cfg: Config, character: Character, log: Callable[[str], No
     for path in paths:
         try:
             state = checkpoint.load(path)
-            checkpoint.check_layout(path, state, [c.key for c in components])
+            # The replay buffers are saved beside the checkpoint (the trainer refills them when they are not there).
+            checkpoint.check_layout(path, state, [c.key for c in components if c.role != "replay"])
             if method.needs:  # its components fit or not once the trainer restores them
                 return path
             try:
@@ -261,7 +262,7 @@ def resume_checkpoint(cfg: Config, character: Character, log: Callable[[str], No
             if targets is None:  # built as the trainer builds them, without touching torch's threads or RNG
                 threads = torch.get_num_threads()
                 with torch.random.fork_rng(devices=[]):
-                    targets = {c.key: c.cls(*c.args, **c.kwargs) for c in components}
+                    targets = {c.key: c.cls(*c.args, **c.kwargs) for c in components if c.key in state}
                 torch.set_num_threads(threads)
             checkpoint.check_restore(path, state, {"method": method, **targets})
             return path

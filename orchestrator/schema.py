@@ -124,9 +124,12 @@ class LoopConfig:
     staleness: int = 1
     # Iterations between checkpoints (and at the end); 0: only at the end.
     checkpoint_every: int = 50
-    # Checkpoints kept, the newest, in run_dir/checkpoints and in the MLflow run's artifacts (older ones are
-    # deleted after each save; a resume falls back to an older one when the newest does not load). At least 1.
+    # Checkpoints kept, the newest, in run_dir/checkpoints (older ones are deleted after each save; a resume falls
+    # back to an older one when the newest does not load). At least 1. The store keeps tracking.store_checkpoints.
     checkpoint_keep: int = 3
+    # Of those, how many newest keep their replay buffers beside them in run_dir/checkpoints (`replay-N.pt`, never
+    # uploaded; ControlVAE's default 50,000 transitions are 87 MB); 0: none saved (a resume refills them).
+    replay_keep: int = 1
     # Iterations between evaluations (and at the end); 0: only at the end.
     eval_every: int = 0
     # The wall minutes one run of this method takes at this scale, measured on a 2-core machine (this project's
@@ -150,6 +153,8 @@ class LoopConfig:
     def __post_init__(self) -> None:
         if self.max_episode_steps < 0:
             raise ConfigError(f"algo.loop.max_episode_steps must be non-negative, got {self.max_episode_steps}")
+        if self.replay_keep < 0:
+            raise ConfigError(f"algo.loop.replay_keep must be non-negative, got {self.replay_keep}")
         for key in ("iterations", "collect_steps", "replay_capacity", "checkpoint_keep"):
             if getattr(self, key) < 1:
                 raise ConfigError(f"algo.loop.{key} must be at least 1, got {getattr(self, key)}")
@@ -301,8 +306,13 @@ class TrackingConfig:
     # Uploads in a row that time out before the run stops trying: the files wait in the run directory's
     # tracking spool for orchestrator.tracking.mlflow.replay_spool, and the run ends without them.
     artifact_tries: int = 3
+    # The newest checkpoints kept in the MLflow run's artifacts (networks, optimizers and counters: what a stage's
+    # consumers read; never the replay buffers), at least 1; run_dir keeps algo.loop.checkpoint_keep of them.
+    store_checkpoints: int = 1
 
     def __post_init__(self) -> None:
+        if self.store_checkpoints < 1:
+            raise ConfigError(f"tracking.store_checkpoints must be at least 1, got {self.store_checkpoints}")
         if self.uri is not None and (problem := tracking_uri_error(self.uri)):
             raise ConfigError(f"tracking.uri: {problem}")
         if self.stage_code not in CODE_VERSIONS:

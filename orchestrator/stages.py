@@ -60,7 +60,8 @@ TrainStage = Callable[[Config, dict[str, Upstream], str], str]
 # Keys that do not change what a run produces; runtime keeps only what changes the samples.
 NOT_RESULT = ("run_dir", "progress", "tracking", "resume", "preset", "sweep_seeds", "scale_name", "stage_overrides")
 RUNTIME_RESULT = ("rollout_workers", "envs_per_worker")
-LOOP_NOT_RESULT = ("expected_minutes",)  # what a run is expected to take, not what it computes
+# What a run is expected to take, and which replay buffers it keeps on disk: not what it computes.
+LOOP_NOT_RESULT = ("expected_minutes", "replay_keep")
 # What an upstream stage shares with the run that needs it.
 SHARED = (
     "character", "motion", "runtime", "sim", "eval", "tracking", "progress", "preset", "scale_name", "stage_overrides"

@@ -92,6 +92,8 @@ class Trainer:
                 "time on this machine and seconds after (runtime.learner_compile=eager skips it)",
                 r.learner_compile,
             )
+        # Components whose states are saved beside each checkpoint, not in it (`checkpoint.replay_path`).
+        self.replay_keys = [c.key for c in components if c.role == "replay"]
         self.handles: dict[str, Any] = {
             c.key: runtime.spawn(c.cls, *c.args, name=c.actor, resources=rc, **c.kwargs)
             for c, rc in zip(components, res, strict=True)
@@ -113,6 +115,8 @@ class Trainer:
         # from the last checkpoint (`check_alive`).
         self.incarnations: dict[str, str | None] = dict.fromkeys(self.handles)
         self.recoveries = 0
+        # Checkpoints that may have a copy in the store, oldest first (those of a resumed run's earlier commands too).
+        self.in_store: list[Path] = sorted(checkpoint.newest_first(self.ckpt_dir))
         self.system: SystemMetrics | None = None  # started by `run`
         self.model_uri: str | None = None  # the exported policy's MLflow model, after `run`
 
@@ -204,7 +208,11 @@ class Trainer:
         if path is None:
             log.warning("%s restarted before the first checkpoint: it starts over", key)
             return
-        self.runtime.get(self.runtime.call(self.handles[key], "load_state_dict", checkpoint.load(path)[key]))
+        states = self._replay_states(path) if key in self.replay_keys else checkpoint.load(path)
+        if key not in states:
+            log.warning("%s restarted: no state of it beside %s (algo.loop.replay_keep=0): empty", key, path.name)
+            return
+        self.runtime.get(self.runtime.call(self.handles[key], "load_state_dict", states[key]))
         log.warning("%s restarted: reloaded from %s", key, path.name)
 
     # One iteration -----------------------------------------------------------------
@@ -226,35 +234,70 @@ class Trainer:
 
     # Checkpoints -------------------------------------------------------------------
     def save(self) -> Path:
-        rt = self.runtime
+        """`ckpt-N.pt` (networks, optimizers, counters, the workers' states) and, beside it, `replay-N.pt` (the
+        replay buffers, written first: a crash between the two leaves no checkpoint without them). The run directory
+        keeps `algo.loop.checkpoint_keep` checkpoints, the replay of the newest `replay_keep`; the store the newest
+        `tracking.store_checkpoints` checkpoints, never a replay (a stage's consumers read its networks; a resume
+        reads the run directory)."""
+        rt, loop = self.runtime, self.cfg.algo.loop
         state = {key: rt.get(rt.call(h, "state_dict")) for key, h in self.handles.items()}
+        replay = {key: state.pop(key) for key in self.replay_keys}
         state.update(
             loop=asdict(self.state),
             method=self.method.state_dict(),
             workers=rt.get([rt.call(w, "state_dict") for w in self.workers]),
             run_id=self.logger.run_id,
         )
+        if replay and loop.replay_keep > 0:
+            checkpoint.save(self.ckpt_dir, self.state.iteration, replay, stem=checkpoint.REPLAY_STEM)
         path = checkpoint.save(self.ckpt_dir, self.state.iteration, state)
         self.logger.log_artifact(str(path), "checkpoints")
         self.logger.log_artifact(str(checkpoint.digest_path(path)), "checkpoints")
-        # The newest `checkpoint_keep` stay, here and in the store (deleted there first, in order after the uploads).
-        checkpoint.prune(self.ckpt_dir, self.cfg.algo.loop.checkpoint_keep, self._forget)
+        self.in_store = [p for p in self.in_store if p != path] + [path]
+        while len(self.in_store) > self.cfg.tracking.store_checkpoints:  # deleted in order after the uploads
+            self._forget(self.in_store.pop(0))
+        checkpoint.prune(self.ckpt_dir, loop.checkpoint_keep, self._forget, loop.replay_keep)
         return path
 
     def _forget(self, path: Path) -> None:
+        """Delete checkpoint `path`'s copy in the store (a no-op there when it is gone already)."""
+        if path in self.in_store:
+            self.in_store.remove(path)
         self.logger.delete_artifact(f"checkpoints/{path.name}")
         self.logger.delete_artifact(f"checkpoints/{checkpoint.digest_path(path).name}")
+
+    def _replay_states(self, path: Path) -> dict[str, Any]:
+        """The replay buffers saved with checkpoint `path`: {} when none were (older than the newest kept, or
+        `algo.loop.replay_keep=0`); a CheckpointError naming the file when they were and do not load. A checkpoint
+        from before they were saved apart holds them itself."""
+        state = checkpoint.load(path)
+        if all(key in state for key in self.replay_keys):
+            return {key: state[key] for key in self.replay_keys}
+        replay = checkpoint.replay_path(path)
+        return checkpoint.load(replay) if replay.exists() else {}
 
     def restore(self, path: Path) -> None:
         """Load every component, the method and the workers from `path`; CheckpointError naming the file and
         what does not fit (a resume then tries the checkpoint before it: each load replaces every state)."""
         state = checkpoint.load(path)
-        checkpoint.check_layout(path, state, list(self.handles))
+        checkpoint.check_layout(path, state, [k for k in self.handles if k not in self.replay_keys])
+        try:
+            replay = self._replay_states(path) if self.replay_keys else {}
+        except checkpoint.CheckpointError as e:  # the networks beside it are good: better than an older checkpoint
+            log.warning("resume: replay buffer %s; not used", e)
+            replay = {}
+        if self.replay_keys and not replay:
+            log.warning(
+                "resume: %s has no replay buffer beside it (kept for the newest checkpoint only, "
+                "algo.loop.replay_keep): it refills from empty, algo.loop.warmup transitions before learning",
+                path.name,
+            )
+        state.update(replay)
         rt = self.runtime
         try:
             loop = LoopState(**state["loop"])
             self.method.load_state_dict(state["method"])
-            rt.get([rt.call(h, "load_state_dict", state[key]) for key, h in self.handles.items()])
+            rt.get([rt.call(h, "load_state_dict", state[key]) for key, h in self.handles.items() if key in state])
             for w, ws in zip(self.workers, state["workers"], strict=True):
                 rt.get(rt.call(w, "load_state_dict", ws))
         except Exception as e:

@@ -236,11 +236,20 @@ class ReplayBuffer:
         """The stored transitions, links, counters and RNG state: NumPy arrays and plain types only."""
         size = self._size
         last = np.array([(k, *v) for k, v in self._last.items()], np.int64).reshape(-1, 4)
+        arrays = {k: getattr(self, "_" + k)[:size].copy() for k in self._ARRAYS}
+        # A transition's next state is, bit for bit, its successor's state nearly always: only the others are
+        # stored (`next_states_same` marks the rest), which halves the file.
+        states, successor = arrays["states"], arrays["next"]
+        linked = (successor >= 0) & (successor < size)
+        same = np.zeros(size, bool)
+        same[linked] = (arrays["next_states"][linked] == states[successor[linked]]).all(axis=(1, 2))
+        arrays["next_states"] = arrays["next_states"][~same]
+        arrays["next_states_same"] = same
         return {
             "capacity": self.capacity,
             "num_bodies": self.num_bodies,
             "action_dim": self.action_dim,
-            "arrays": {k: getattr(self, "_" + k)[:size].copy() for k in self._ARRAYS},
+            "arrays": arrays,
             "last": last,
             "ptr": self._ptr,
             "size": size,
@@ -256,9 +265,17 @@ class ReplayBuffer:
                 f"this buffer is {(self.capacity, self.num_bodies, self.action_dim)}"
             )
         size = int(state["size"])
+        arrays = dict(state["arrays"])
+        same = arrays.pop("next_states_same", None)  # absent from checkpoints that stored every next state
+        if same is not None:
+            same = np.asarray(same, bool)
+            full = np.empty((size, self.num_bodies, 13), np.float32)
+            full[same] = arrays["states"][arrays["next"][same]]
+            full[~same] = arrays["next_states"]
+            arrays["next_states"] = full
         for k in self._ARRAYS:
             arr = getattr(self, "_" + k)
-            arr[:size] = state["arrays"].get(k, 0)  # rewards are absent from older checkpoints
+            arr[:size] = arrays.get(k, 0)  # rewards are absent from older checkpoints
             arr[size:] = -1 if k in ("uid", "next") else 0
         self._last = {int(k): (int(s), int(u), int(t)) for k, s, u, t in np.asarray(state["last"]).reshape(-1, 4)}
         self._ptr = int(state["ptr"])

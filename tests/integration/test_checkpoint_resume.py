@@ -1,10 +1,12 @@
-"""Checkpoints over real smoke runs: a truncated newest checkpoint resumes from the one before, only the newest
-`algo.loop.checkpoint_keep` stay (here and in the MLflow store), a second command on a busy run directory is
-refused, and Ctrl-C ends a run KILLED with the one command that resumes it."""
+"""Checkpoints over real smoke runs: a truncated newest checkpoint resumes from the one before (its replay buffer
+refilled: only the newest keeps one beside it), only the newest `algo.loop.checkpoint_keep` stay here and the newest
+`tracking.store_checkpoints` in the MLflow store, a second command on a busy run directory is refused, and Ctrl-C
+ends a run KILLED with the one command that resumes it."""
 
 from __future__ import annotations
 
 import json
+import logging
 import os
 import re
 import shlex
@@ -42,13 +44,15 @@ def stored(run_dir: Path, run_id: str) -> list[str]:
 
 
 @pytest.mark.slow
-def test_a_truncated_newest_checkpoint_resumes_from_the_one_before(smoke, capsys):
+def test_a_truncated_newest_checkpoint_resumes_from_the_one_before(smoke, capsys, caplog):
     common = ("algo.loop.checkpoint_every=2", "algo.loop.checkpoint_keep=2", "tracking.log_model=false")
     first = smoke("algo.loop.iterations=4", *common, name="r")
     run(first)
     run_dir = Path(first.run_dir)
     ckpts = run_dir / "checkpoints"
-    assert names(ckpts) == ["ckpt-0000002.pt", "ckpt-0000004.pt"]
+    assert names(ckpts) == ["ckpt-0000002.pt", "ckpt-0000004.pt", "replay-0000004.pt"]
+    assert "replay" not in checkpoint.load(ckpts / "ckpt-0000004.pt")  # beside it, not in it
+    assert checkpoint.load(ckpts / "replay-0000004.pt")["replay"]["size"] > 0
     newest = ckpts / "ckpt-0000004.pt"
     newest.write_bytes(newest.read_bytes()[: newest.stat().st_size // 2])  # a disk that filled up, say
     run_id = json.loads((run_dir / "run.json").read_text())["run_id"]
@@ -64,21 +68,23 @@ def test_a_truncated_newest_checkpoint_resumes_from_the_one_before(smoke, capsys
     assert message.endswith("(and the 1 before it do not load either; resume=true; the files are left as they are)")
     capsys.readouterr()
 
-    run(smoke("algo.loop.iterations=6", *common, "resume=true", name="r"))
+    with caplog.at_level(logging.WARNING, logger="orchestrator.trainer"):
+        run(smoke("algo.loop.iterations=6", *common, "resume=true", name="r"))
     err = capsys.readouterr().err
+    assert "resume: ckpt-0000002.pt has no replay buffer beside it" in caplog.text  # it refills
     assert f"resume: skipping checkpoint {newest}: truncated or corrupt" in err
     assert f"resumed from {ckpts / 'ckpt-0000002.pt'} at iteration 2" in err
     # Iterations 3 to 6 again, into the same MLflow run; the truncated file was written anew at iteration 4,
-    # and only the newest two stay, here and in the store.
+    # and only the newest two stay here, the newest in the store.
     client = MlflowClient(f"sqlite:///{run_dir}/mlflow.db")
     assert json.loads((run_dir / "run.json").read_text())["run_id"] == run_id
     assert client.get_run(run_id).info.status == "FINISHED"
     per_iteration = 2 * 8 * 16  # workers x environments x steps
     steps = [m.step for m in client.get_metric_history(run_id, "throughput/samples_per_s")]
     assert steps == [per_iteration * i for i in (1, 2, 3, 4, 3, 4, 5, 6)]
-    assert names(ckpts) == ["ckpt-0000004.pt", "ckpt-0000006.pt"]
+    assert names(ckpts) == ["ckpt-0000004.pt", "ckpt-0000006.pt", "replay-0000006.pt"]
     assert checkpoint.load(newest)["loop"]["iteration"] == 4
-    assert stored(run_dir, run_id) == ["ckpt-0000004.pt", "ckpt-0000006.pt"]
+    assert stored(run_dir, run_id) == ["ckpt-0000006.pt"]
 
 
 def orchestrator(*args: str) -> subprocess.Popen:

@@ -17,17 +17,36 @@ from mlflow.tracking import MlflowClient
 ROOT = Path(__file__).resolve().parents[2]
 
 
-def orchestrator(*args: str, **kwargs) -> subprocess.Popen:
-    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+def orchestrator(*args: str, cwd: Path = ROOT, **kwargs) -> subprocess.Popen:
+    env = {**os.environ, "PYTHONUNBUFFERED": "1", "PYTHONPATH": str(ROOT)}
     return subprocess.Popen(
         [sys.executable, "-m", "orchestrator", "runtime=local", "eval.video=false", *args],
-        cwd=ROOT,
+        cwd=cwd,
         env=env,
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
         **kwargs,
     )
+
+
+def test_a_run_writes_only_into_the_run_dir_it_is_given_and_a_refused_one_nowhere(tmp_path):
+    """Hydra's own record (.hydra/, its log) goes into `run_dir=`, not into outputs/ of the working directory; a
+    command refused before it starts leaves nothing behind, there or in outputs/."""
+    cwd = tmp_path / "cwd"
+    cwd.mkdir()
+    args = ["scale=smoke", "motion=walk", "tracking=off", "progress=false", "algo.loop.iterations=1"]
+    proc = orchestrator(*args, f"run_dir={tmp_path / 'run'}", cwd=cwd)
+    _, err = proc.communicate(timeout=300)
+    assert proc.returncode == 0, err[-2000:]
+    assert list(cwd.iterdir()) == []
+    assert "run_dir=" in (tmp_path / "run" / ".hydra" / "overrides.yaml").read_text()
+    assert (tmp_path / "run" / "checkpoints" / "ckpt-0000001.pt").exists()
+    for refused in (["seed=-1"], ["seed=-1", f"run_dir={tmp_path / 'new'}"]):
+        proc = orchestrator(*args, *refused, cwd=cwd)
+        _, err = proc.communicate(timeout=120)
+        assert proc.returncode == 2 and err.strip().startswith("config error: seed: -1"), err[-2000:]
+    assert list(cwd.iterdir()) == [] and not (tmp_path / "new").exists()
 
 
 def test_bad_value_fails_before_anything_starts(tmp_path):

@@ -96,6 +96,23 @@ def test_prune_forgets_a_checkpoint_before_deleting_it_so_a_cut_short_prune_is_r
     assert sorted(p.name for p in tmp_path.iterdir()) == ["ckpt-0000003.pt", "ckpt-0000003.pt.sha256"]
 
 
+def test_prune_keeps_the_replay_buffers_of_the_newest_only_and_drops_those_without_their_checkpoint(tmp_path):
+    for i in range(1, 4):
+        checkpoint.save(tmp_path, i, {"replay": {"size": i}}, stem=checkpoint.REPLAY_STEM)
+        checkpoint.save(tmp_path, i, state(i))
+    checkpoint.save(tmp_path, 4, {"replay": {"size": 4}}, stem="replay")  # a crash before ckpt-4 was written
+    (tmp_path / "replay-0000005.tmp").write_bytes(b"PK\x03\x04 left by a crash")
+    assert checkpoint.replay_path(tmp_path / "ckpt-0000003.pt") == tmp_path / "replay-0000003.pt"
+    checkpoint.prune(tmp_path, keep=2, replay_keep=1)
+    assert sorted(p.name for p in tmp_path.iterdir()) == [
+        "ckpt-0000002.pt", "ckpt-0000002.pt.sha256", "ckpt-0000003.pt", "ckpt-0000003.pt.sha256",
+        "replay-0000003.pt", "replay-0000003.pt.sha256",
+    ]  # fmt: skip
+    assert checkpoint.load(tmp_path / "replay-0000003.pt") == {"replay": {"size": 3}}
+    checkpoint.prune(tmp_path, keep=2, replay_keep=0)
+    assert not list(tmp_path.glob("replay-*"))
+
+
 def test_checkpoint_keep_below_one_is_refused_naming_the_key():
     with pytest.raises(ConfigError, match=r"algo\.loop\.checkpoint_keep must be at least 1, got 0"):
         LoopConfig(checkpoint_keep=0)

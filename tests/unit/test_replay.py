@@ -179,6 +179,28 @@ def test_state_dict_round_trip_gives_identical_samples():
     np.testing.assert_array_equal(buf.sample_windows(32, 8).states, other.sample_windows(32, 8).states)
 
 
+def test_a_checkpoint_stores_only_the_next_states_that_are_not_their_successors_and_restores_all_exactly():
+    buf = ReplayBuffer(60, B, A, seed=7)
+    w = FakeWorker(2, 3, p_done=0.05, seed=4)
+    for _ in range(8):  # 96 transitions into 60 slots: the oldest overwritten, links into them stale
+        buf.add(w.collect(4))
+    state = buf.state_dict()
+    kept, same = state["arrays"]["next_states"], state["arrays"]["next_states_same"]
+    assert len(kept) == int((~same).sum())
+    assert 3 <= len(kept) <= 15  # each stream's newest step, a reset's, a stale link's: a few of 60
+    other = ReplayBuffer(60, B, A, seed=123)
+    other.load_state_dict(copy.deepcopy(state))
+    for key in ReplayBuffer._ARRAYS:
+        np.testing.assert_array_equal(getattr(other, "_" + key), getattr(buf, "_" + key), err_msg=key)
+    # A checkpoint that stored every next state (before this) loads the same.
+    full = copy.deepcopy(state)
+    full["arrays"]["next_states"] = buf._next_states[:60].copy()
+    del full["arrays"]["next_states_same"]
+    older = ReplayBuffer(60, B, A)
+    older.load_state_dict(full)
+    np.testing.assert_array_equal(older._next_states, buf._next_states)
+
+
 def test_sample_states_and_stats():
     buf = ReplayBuffer(100, B, A)
     w = FakeWorker(0, 2)
