@@ -79,7 +79,7 @@ def _main(dcfg: DictConfig) -> float | None:
         # A point of a sweep: a child of the sweep's parent run, in the sweep's store.
         cfg.tracking.uri = cfg.tracking.uri or parent["uri"]
         cfg.tracking.experiment = parent["experiment"]
-    from orchestrator.checkpoint import CheckpointError, RunDirBusy
+    from orchestrator.checkpoint import CheckpointError, DiskError, RunDirBusy
     from orchestrator.preflight import InputError, check
     from orchestrator.upstream import StageError
     from workers.body.character import CharacterError
@@ -95,6 +95,7 @@ def _main(dcfg: DictConfig) -> float | None:
         CharacterError: "error: character ",
         CheckpointError: "error: checkpoint ",
         RunDirBusy: "error: ",
+        DiskError: "error: ",
     }
     signal.signal(signal.SIGTERM, _interrupt)  # `kill`, a scheduler's stop: as Ctrl-C
     try:
@@ -172,5 +173,24 @@ def _fail(
     sys.exit(code)
 
 
+def _check_output_dir(argv: list[str]) -> None:
+    """One line and exit 2 when the folder Hydra is about to write its record into (`hydra.run.dir=`, else
+    `run_dir=`, else outputs/ here) cannot be written to (a read-only mount, no permission), before Hydra tries and
+    fails with a traceback; not for a multirun, whose folders are its own."""
+    from orchestrator.checkpoint import unwritable
+
+    if any(a in ("-m", "--multirun") for a in argv):
+        return
+    given = dict(a.split("=", 1) for a in argv if a.startswith(("hydra.run.dir=", "run_dir=")))
+    key = "hydra.run.dir" if "hydra.run.dir" in given else "run_dir" if "run_dir" in given else None
+    where = given[key] if key else "outputs"
+    problem = unwritable(where)
+    if problem:
+        what = f"{key}={where}" if key else f"{Path.cwd()}: Hydra's outputs/ folder, where run_dir goes by default,"
+        print(f"error: {what}: cannot write there ({problem}); give a run_dir= you can write to", file=sys.stderr)
+        sys.exit(2)
+
+
 if __name__ == "__main__":
+    _check_output_dir(sys.argv[1:])
     main()

@@ -190,13 +190,45 @@ def _run(
         if isinstance(e, Interrupted):
             raise
         raise Interrupted(trainer.state.iteration if trainer is not None else 0, run_dir) from None
+    except OSError as e:
+        if e.errno not in checkpoint.DISK_ERRORS:
+            raise
+        raise _disk_error(e, run_dir, logger) from None
     finally:
         with _shielded(status == "KILLED"):
-            logger.close(status)
-            # A run created late (the server was down at the start) has its id only now.
-            run_file.write_text(json.dumps({"run_id": logger.run_id}))
+            with _kept_going(status == "FAILED"):
+                logger.close(status)
+                # A run created late (the server was down at the start) has its id only now.
+                run_file.write_text(json.dumps({"run_id": logger.run_id}))
             if runtime is not None:
                 runtime.shutdown()
+
+
+def _disk_error(e: OSError, run_dir: Path, logger: RunLogger) -> checkpoint.DiskError:
+    """A disk that filled up or turned read-only under the run: the reason tagged on its run (`last_failure`, when the
+    store can still take it), and one line saying which file, what stays and how to go on."""
+    reason = f"{e.filename or run_dir}: {e.strerror}"
+    with contextlib.suppress(Exception):  # a store on the same full disk: the line below says it all
+        logger.set_tags({"last_failure": reason})
+    last = checkpoint.latest(run_dir / "checkpoints")
+    kept = f"{last.name} stays, the last complete checkpoint" if last else "no checkpoint was complete yet"
+    return checkpoint.DiskError(
+        f"{reason} (the file being written was discarded; {kept}); the run is FAILED: free space, then resume with "
+        f"run_dir={run_dir} resume=true"
+    )
+
+
+@contextlib.contextmanager
+def _kept_going(on: bool) -> Iterator[None]:
+    """The close of a run that failed on a full disk, whose own writes (its store, its run file) may fail too:
+    what does not go is warned about, so that the reason above stays the command's last word."""
+    if not on:
+        yield
+        return
+    try:
+        yield
+    except OSError as e:
+        print(f"warning: closing the run: {e}", file=sys.stderr)
 
 
 @contextlib.contextmanager

@@ -18,10 +18,12 @@ and `LOCK_FILE`, locked by the command that runs in it (`lock_run_dir`).
 
 from __future__ import annotations
 
+import errno
 import fcntl
 import os
 import pickle
 import re
+import tempfile
 import warnings
 import zipfile
 from collections.abc import Callable
@@ -50,6 +52,14 @@ class CheckpointError(ValueError):
         self.path = str(path)
         self.message = message
         super().__init__(f"{self.path}: {message}")
+
+
+# What a disk that filled up or became read-only under a run raises (the quota's too).
+DISK_ERRORS = (errno.ENOSPC, errno.EDQUOT, errno.EROFS)
+
+
+class DiskError(RuntimeError):
+    """A run stopped by its disk (`DISK_ERRORS`); the message names the file, what stays and how to go on."""
 
 
 class RunDirBusy(RuntimeError):
@@ -92,18 +102,46 @@ def save(directory: str | Path, iteration: int, state: dict[str, Any], stem: str
     digest, digest_tmp = digest_path(path), directory / f"{path.name}{DIGEST_SUFFIX}.tmp"
     try:
         with open(tmp, "wb") as f:
-            torch.save(_encode(state), f)
+            writer = _Writer(f)
+            try:
+                torch.save(_encode(state), writer)
+            except RuntimeError:
+                if writer.error is None:
+                    raise
+                raise writer.error from None  # torch's writer reports a failed write ("unexpected pos ...")
             f.flush()
             os.fsync(f.fileno())
         digest_tmp.write_text(f"{sha256(tmp)}  {path.name}\n")
         os.replace(digest_tmp, digest)
         os.replace(tmp, path)
+    except OSError as e:  # a full disk, a read-only one: said of the file being written
+        tmp.unlink(missing_ok=True)
+        digest_tmp.unlink(missing_ok=True)
+        raise OSError(e.errno, e.strerror, str(tmp)) from None
     except BaseException:
         tmp.unlink(missing_ok=True)
         digest_tmp.unlink(missing_ok=True)
         raise
     _fsync_dir(directory)
     return path
+
+
+class _Writer:
+    """The file torch.save writes to, keeping the OSError of a write that failed (torch's zip writer turns it into
+    a RuntimeError that does not say why)."""
+
+    def __init__(self, f: Any):
+        self.f, self.error = f, None
+
+    def write(self, data: Any) -> int:
+        try:
+            return self.f.write(data)
+        except OSError as e:
+            self.error = e
+            raise
+
+    def flush(self) -> None:
+        self.f.flush()
 
 
 def digest_path(path: str | Path) -> Path:
@@ -161,6 +199,24 @@ def prune(
         path.unlink(missing_ok=True)
         digest_path(path).unlink(missing_ok=True)
     return old
+
+
+def unwritable(directory: str | Path) -> str | None:
+    """Why files cannot be written into `directory` (made if missing), e.g. "Read-only file system"; None when
+    they can. Tried for real, with a file made and removed in its nearest existing folder (permission bits say
+    nothing to root, nor of a read-only mount)."""
+    folder = Path(directory).absolute()
+    while not folder.exists() and folder != folder.parent:
+        folder = folder.parent
+    if not folder.is_dir():
+        return f"{folder} is not a directory"
+    try:
+        fd, name = tempfile.mkstemp(prefix=".write-test-", dir=folder)
+        os.close(fd)
+        os.unlink(name)
+    except OSError as e:
+        return e.strerror or type(e).__name__
+    return None
 
 
 def lock_run_dir(run_dir: str | Path) -> TextIO:

@@ -13,6 +13,8 @@ anything is written to the run directory, so that bad input leaves everything al
 - a GPU asked for (`runtime.learner_device=cuda`, `runtime.learner_gpus`) is one this machine has (the
   local runtime, or a Ray started for the run) or, at a cluster's `runtime.address`, one the cluster has;
   so is the warp simulator's (`sim.device`);
+- the method's replay buffers (`algo.loop.replay_capacity`), with a checkpoint's copy, fit in the memory
+  this machine has available;
 - every stage spec of the chain of upstream stages composes (`stages.plan`), and `motion.joint_map`
   names bodies of the character;
 - with `resume=true`, the run in run.json is still in the store, and a checkpoint in the run directory
@@ -32,6 +34,7 @@ from collections.abc import Callable
 from pathlib import Path
 from urllib.parse import urlsplit
 
+import psutil
 import torch
 
 from orchestrator import checkpoint
@@ -44,6 +47,7 @@ from orchestrator.trainer import LoopState
 from orchestrator.world import load_character, load_library
 from workers.body.character import Character, CharacterError
 from workers.motion.errors import ClipError
+from workers.replay import ReplayBuffer
 
 
 class InputError(RuntimeError):
@@ -68,6 +72,7 @@ def check(cfg: Config) -> None:
 
         plan(cfg)  # every stage spec of the chain composes, before any stage trains
     character = character_and_clips(cfg)
+    replay_memory(cfg, character)
     if cfg.runtime.address and cfg.runtime._target_.endswith("RayRuntime"):
         from orchestrator.runtime.ray import AddressError, check_address
 
@@ -186,6 +191,25 @@ def cluster_gpus(cfg: Config) -> None:
             raise ConfigError(
                 f"runtime.{key}={asked:g}: the Ray cluster at runtime.address={r.address} has {have:g} GPU(s)"
             )
+
+
+def replay_memory(cfg: Config, character: Character) -> None:
+    """ConfigError when the method's replay buffers (`algo.loop.replay_capacity` transitions each), with the copy a
+    checkpoint makes of them, would take more than this machine's available memory; not for a cluster's run
+    (`runtime.address`), whose buffer lives on a node this process cannot see."""
+    buffers = method_class(cfg.algo._target_).replay_buffers
+    if not buffers or cfg.runtime.address:
+        return
+    capacity = cfg.algo.loop.replay_capacity
+    per = buffers * ReplayBuffer.nbytes(1, character.num_bodies, character.num_actions)
+    available = psutil.virtual_memory().available
+    if 2 * capacity * per > available:
+        gib = 2**30
+        raise ConfigError(
+            f"algo.loop.replay_capacity={capacity}: the replay buffer takes {capacity * per / gib:.1f} GiB and a "
+            f"checkpoint copies it, {2 * capacity * per / gib:.1f} GiB in all, more than the {available / gib:.1f} "
+            f"GiB this machine has available; at most {available // (2 * per):,} transitions fit"
+        )
 
 
 def character_and_clips(cfg: Config) -> Character:

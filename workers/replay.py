@@ -67,6 +67,12 @@ class ReplayBuffer:
         self._last: dict[int, tuple[int, int, int]] = {}
         self._valid_starts: dict[int, np.ndarray] = {}  # window length -> valid start slots (cache)
 
+    @staticmethod
+    def nbytes(capacity: int, num_bodies: int, action_dim: int) -> int:
+        """The memory the arrays of a buffer of `capacity` transitions take (what `__init__` allocates): two
+        float32 body states, a float32 action and reward, a done flag and seven int64 indices per transition."""
+        return capacity * (2 * num_bodies * 13 * 4 + action_dim * 4 + 4 + 1 + 7 * 8)
+
     def __len__(self) -> int:
         return self._size
 

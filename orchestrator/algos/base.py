@@ -109,6 +109,9 @@ class Method:
     # What kind of expert a finished run of this method is for the stages that distil one (demos, PULSE):
     # "ppo" (its PPO actor), "vae" (its VAE controller's posterior) or None (it cannot be one).
     expert: str | None = None
+    # Replay buffers of `algo.loop.replay_capacity` transitions it holds in memory (checked against the machine's
+    # memory before a run starts: `orchestrator.preflight.replay_memory`).
+    replay_buffers: int = 0
 
     def __init__(self, cfg: Config, character: Character, upstream: dict[str, Upstream] | None = None):
         self.cfg = cfg

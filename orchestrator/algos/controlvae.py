@@ -36,6 +36,7 @@ from workers.recorders import TrackingReward
 
 class ControlVAE(ReplayFed):
     sections = ("world_model", "vae")
+    replay_buffers = 1
     expert = "vae"  # a demos stage can take its posterior as the expert
 
     def __init__(self, cfg, character, upstream=None):

@@ -39,6 +39,7 @@ from workers.policies import VAEPolicy, expert_module
 
 class Pulse(ReplayFed):
     sections = ("vae", "pulse")
+    replay_buffers = 1
     needs = ("expert",)
 
     def __init__(self, cfg, character, upstream=None):

@@ -441,3 +441,10 @@ def test_resuming_a_run_the_store_does_not_have_is_refused(tmp_path, capsys, gon
     assert "sqlite:///" in line
     assert sorted(p.name for p in run_dir.iterdir()) == ["run.json"]
     assert len(client.search_runs([client.get_experiment_by_name("e").experiment_id], run_view_type=3)) == 1
+
+
+def test_a_replay_capacity_the_memory_cannot_hold_is_refused_before_anything_starts(tmp_path, capsys):
+    code, err = run_main(tmp_path, capsys, "motion=walk", "algo.loop.replay_capacity=10000000000")
+    line = assert_refused(tmp_path, code, err, "algo.loop.replay_capacity=10000000000", "GiB this machine has")
+    assert line.startswith("config error: ") and "transitions fit" in line
+    assert not (tmp_path / "run").exists()

@@ -201,6 +201,12 @@ def test_a_checkpoint_stores_only_the_next_states_that_are_not_their_successors_
     np.testing.assert_array_equal(older._next_states, buf._next_states)
 
 
+def test_nbytes_is_what_the_buffer_allocates():
+    buf = ReplayBuffer(37, B, A)
+    allocated = sum(v.nbytes for v in vars(buf).values() if isinstance(v, np.ndarray))
+    assert ReplayBuffer.nbytes(37, B, A) == allocated
+
+
 def test_sample_states_and_stats():
     buf = ReplayBuffer(100, B, A)
     w = FakeWorker(0, 2)
