@@ -26,6 +26,7 @@ from urllib.parse import unquote, urlsplit
 
 # Permissions that let a user create runs in an experiment (MLflow's `Permission.can_update`).
 WRITE = ("EDIT", "MANAGE")
+UNKNOWN = "UNKNOWN"  # a server without MLflow 3's permission API: trusted for nothing, refused for nothing
 
 
 @dataclass(frozen=True)
@@ -115,5 +116,7 @@ def experiment_access(uri: str, who: Identity, name: str, timeout_s: float = 3.0
     if who.admin:
         return Access(experiment_id, "MANAGE")
     query = {"username": who.user, "resource_type": "experiment", "resource_id": experiment_id}
-    _, answer = _get(uri, "/api/3.0/mlflow/users/permissions/get", query, timeout_s)
+    status, answer = _get(uri, "/api/3.0/mlflow/users/permissions/get", query, timeout_s)
+    if status == 404:  # a server from before MLflow 3's permission API: it cannot say
+        return Access(experiment_id, UNKNOWN)
     return Access(experiment_id, str(answer.get("permission") or "NO_PERMISSIONS"))
