@@ -39,9 +39,9 @@ import torch
 
 from orchestrator import checkpoint
 from orchestrator.algos.base import method_class
-from orchestrator.runtime.base import uses_ray
+from orchestrator.runtime.base import uses_ray, worker_gpus
 from orchestrator.schema import Config, ConfigError
-from orchestrator.tracking.identity import auth_header, experiment_access, server_url, whoami
+from orchestrator.tracking.identity import UNKNOWN, auth_header, experiment_access, server_url, whoami
 from orchestrator.tracking.uri import redact, store_uri, tracking_uri_error
 from orchestrator.trainer import LoopState
 from orchestrator.world import load_character, load_library
@@ -73,6 +73,7 @@ def check(cfg: Config) -> None:
         plan(cfg)  # every stage spec of the chain composes, before any stage trains
     character = character_and_clips(cfg)
     replay_memory(cfg, character)
+    gpu_shares(cfg, character)
     if cfg.runtime.address and cfg.runtime._target_.endswith("RayRuntime"):
         from orchestrator.runtime.ray import AddressError, check_address
 
@@ -118,7 +119,7 @@ def own_experiment(uri: str, experiment: str) -> None:
     if who is None:
         return
     access = experiment_access(uri, who, experiment)
-    if access.experiment_id is not None and not access.writable:
+    if access.experiment_id is not None and not access.writable and access.permission != UNKNOWN:
         raise InputError(
             f"tracking.experiment={experiment!r}: user {who.user!r} may not create runs in it on {redact(uri)} "
             f"(the server gives {access.permission}; another user made it): name an experiment of your own, and "
@@ -165,6 +166,17 @@ def sim_device(cfg: Config) -> None:
             f"sim.device={cfg.sim.device}: no such GPU on this machine (torch {torch.__version__} sees "
             f"{torch.cuda.device_count()}); sim.device=cpu runs Warp's CPU kernels (slowly)"
         )
+
+
+def gpu_shares(cfg: Config, character: Character) -> None:
+    """ConfigError when the learners' GPUs as set (`runtime.learner_gpus`) leave the rollout workers' simulator on
+    the GPU no share of one (`orchestrator.runtime.base.worker_gpus`), for a method whose learners are known
+    before its upstream stages are."""
+    cls = method_class(cfg.algo._target_)
+    if cls.needs or not cls.uses_workers:
+        return
+    components = cls(cfg, character, None).components()  # descriptors only: nothing is built
+    worker_gpus(cfg.runtime, cfg.sim, cfg.runtime.rollout_workers, sum(c.role != "replay" for c in components))
 
 
 def cluster_gpus(cfg: Config) -> None:

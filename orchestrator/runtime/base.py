@@ -8,8 +8,11 @@ shared objects may be passed as arguments to other calls.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any
+
+from orchestrator.errors import ConfigError
 
 
 @dataclass(frozen=True)
@@ -81,11 +84,26 @@ def worker_gpus(runtime_cfg: Any, sim: Any, workers: int, learners: int) -> floa
     on_gpu = sim.backend == "warp" and sim.device.startswith("cuda")
     if not uses_ray(r) or r.worker_gpus > 0 or not on_gpu or r.address or workers < 1:
         return float(r.worker_gpus) if uses_ray(r) else 0.0
-    sharing = learners if r.learner_gpus == 0 and r.learner_device != "cpu" else 0
+    if r.learner_gpus > 0 and r.learner_device != "cpu":  # the learners' GPUs as set; the workers share what is left
+        import torch
+
+        left = torch.cuda.device_count() - learners * r.learner_gpus
+        if torch.cuda.device_count() > 0 and left <= 0:
+            raise ConfigError(
+                f"runtime.learner_gpus={r.learner_gpus} for {learners} learner(s) takes every GPU of this machine "
+                f"({torch.cuda.device_count()}), leaving none to the rollout workers' simulator (sim.device="
+                f"{sim.device}): lower it, or set runtime.worker_gpus"
+            )
+        return _share(workers, min(left, 1.0))
+    sharing = learners if r.learner_device != "cpu" else 0
     return _share(workers + sharing)
 
 
-def _share(actors: int) -> float:
+def _share(actors: int, gpus: float = 1.0) -> float:
+    """Each of `actors` actors' equal share of `gpus` GPUs (at most one: Ray puts fractions on one GPU), rounded
+    down to Ray's 1e-4, so that the shares never add up to more than there is."""
     import torch
 
-    return round(1.0 / actors, 4) if torch.cuda.device_count() > 0 and actors > 0 else 0.0
+    if torch.cuda.device_count() == 0 or actors < 1:
+        return 0.0
+    return math.floor(gpus * 10_000 / actors) / 10_000

@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 import torch
 
+from orchestrator.schema import ConfigError
 from workers.learners.base import DeviceError, Schedule, resolve_device
 from workers.learners.discriminator import DiscriminatorBatch, DiscriminatorConfig, DiscriminatorLearner
 from workers.learners.ppo import PPOConfig, PPOLearner, Rollout
@@ -71,13 +72,39 @@ def test_rollout_workers_take_a_share_of_the_gpu_only_for_a_warp_simulator_on_it
     monkeypatch.setattr(torch.cuda, "device_count", lambda: 1)
     assert worker_gpus(SimpleNamespace(**ray), warp, 2, 2) == 0.25  # two workers and two learners on one GPU
     assert worker_gpus(SimpleNamespace(**{**ray, "learner_device": "cpu"}), warp, 2, 2) == 0.5
+    assert worker_gpus(SimpleNamespace(**{**ray, "learner_gpus": 0.25}), warp, 2, 2) == 0.25  # what they leave
+    with pytest.raises(ConfigError, match=r"runtime.learner_gpus=1.0 for 2 learner\(s\) takes every GPU of this"):
+        worker_gpus(SimpleNamespace(**{**ray, "learner_gpus": 1.0}), warp, 2, 2)  # on one GPU: none left
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 3)
     assert worker_gpus(SimpleNamespace(**{**ray, "learner_gpus": 1.0}), warp, 2, 2) == 0.5  # learners set apart
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 1)
     assert worker_gpus(SimpleNamespace(**{**ray, "worker_gpus": 0.1}), warp, 2, 2) == 0.1  # as set
     assert worker_gpus(SimpleNamespace(**{**ray, "address": "auto"}), warp, 2, 2) == 0.0  # a cluster's: set it
     assert worker_gpus(SimpleNamespace(**ray), SimpleNamespace(backend="warp", device="cpu"), 2, 2) == 0.0
     assert worker_gpus(SimpleNamespace(**ray), SimpleNamespace(backend="mujoco", device="cuda"), 2, 2) == 0.0
     monkeypatch.setattr(torch.cuda, "device_count", lambda: 0)
     assert worker_gpus(SimpleNamespace(**ray), warp, 2, 2) == 0.0
+
+
+def test_automatic_gpu_shares_never_add_up_to_more_than_one_gpu(monkeypatch):
+    """round(1/6, 4) = 0.1667 and 6 x 0.1667 = 1.0002, which Ray refuses on a one-GPU machine; so do 7, 15 and 18
+    actors. The shares are rounded down."""
+    from types import SimpleNamespace
+
+    from orchestrator.runtime.base import learner_gpus, worker_gpus
+
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 1)
+    ray = dict(
+        _target_="orchestrator.runtime.ray.RayRuntime", worker_gpus=0.0, learner_gpus=0.0, learner_device="auto",
+        address=None,
+    )  # fmt: skip
+    warp = SimpleNamespace(backend="warp", device="cuda")
+    for learners in range(1, 5):
+        for workers in range(1, 20):
+            total = learners * learner_gpus(SimpleNamespace(**ray), learners, workers)
+            total += workers * worker_gpus(SimpleNamespace(**ray), warp, workers, learners)
+            assert 0.99 < total <= 1.0, (learners, workers, total)
+    assert learner_gpus(SimpleNamespace(**ray), 1, gpu_workers=5) == 0.1666
 
 
 class _Reserved(Exception):
