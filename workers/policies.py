@@ -39,7 +39,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from workers.learners.base import Weights
+from workers.learners.base import Weights, cpu_seeded
 from workers.learners.vae import VAEConfig, build_controller
 from workers.models import body_state
 from workers.models.actor_critic import ActorCritic
@@ -165,8 +165,7 @@ class VAEPolicy(Policy):
         self.action_noise = config.action_noise
         # Built under a fixed seed so that a worker that has not received weights yet is
         # deterministic too (and identical across workers).
-        with torch.random.fork_rng(devices=[]):
-            torch.manual_seed(0)
+        with cpu_seeded(0):
             self.controller = build_controller(num_bodies, action_dim, config)
         self.controller.eval().requires_grad_(False)
 

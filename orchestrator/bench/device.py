@@ -32,6 +32,7 @@ import torch
 
 from orchestrator.bench import learners as bench_learners
 from orchestrator.bench.matmuls import sync
+from workers.learners.base import cpu_seeded
 
 ITERATION_UPDATES = {"world_model": 8, "vae": 8}  # ControlVAE's epoch at scale=paper (see the docstring)
 
@@ -41,8 +42,7 @@ def paper_iteration(device: torch.device, seed: int = 0) -> dict[str, Any]:
     out: dict[str, Any] = {}
     for name, count in ITERATION_UPDATES.items():
         gen = torch.Generator().manual_seed(seed)
-        with torch.random.fork_rng(devices=[]):
-            torch.manual_seed(seed)
+        with cpu_seeded(seed):
             case = bench_learners.BUILDERS[name]("paper", gen, device)
             case.learner.update(case.batch)  # warm-up (allocator, cuBLAS, thread pool)
             sync(device)

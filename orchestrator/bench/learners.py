@@ -76,7 +76,7 @@ from typing import Any
 import torch
 
 from orchestrator.bench.matmuls import CPU, MatmulRecorder, MatmulReplay, machine_peak, sync
-from workers.learners.base import Learner, resolve_device
+from workers.learners.base import Learner, cpu_seeded, resolve_device
 from workers.learners.discriminator import DiscriminatorBatch, DiscriminatorConfig, DiscriminatorLearner
 from workers.learners.ppo import PPOBatch, PPOConfig, PPOLearner
 from workers.learners.task import TaskBatch, TaskConfig, TaskLearner
@@ -352,8 +352,7 @@ def parse_names(text: str | None, allowed: tuple[str, ...], what: str) -> list[s
 
 
 def _build(name: str, size: str, seed: int, device: torch.device) -> Case:
-    with torch.random.fork_rng(devices=[]):
-        torch.manual_seed(seed)
+    with cpu_seeded(seed):
         return BUILDERS[name](size, torch.Generator().manual_seed(seed), device)
 
 

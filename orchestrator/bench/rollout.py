@@ -29,6 +29,7 @@ import torch
 
 from orchestrator.bench.sim import RawStepper, interleaved, walk_run_setup
 from workers.body.features import StateLayout
+from workers.learners.base import cpu_seeded
 from workers.learners.ppo import PPOConfig
 from workers.learners.task import TaskConfig
 from workers.learners.vae import VAEConfig, build_controller
@@ -67,8 +68,7 @@ def make_worker(kind: str, character, library, envs: int, config: SimConfig, see
 
 def _task_policy(num_bodies: int, action_dim: int, control_hz: float) -> TaskPPOPolicy:
     """The point-goal task policy under PPO with the helper branch, on a skill decoder of random weights."""
-    with torch.random.fork_rng(devices=[]):
-        torch.manual_seed(0)
+    with cpu_seeded(0):
         decoder = build_controller(num_bodies, action_dim, LAPTOP_VAE).state_dict()
     policy = TaskPPOPolicy(num_bodies, action_dim, TaskConfig(task="point_goal", sigma=0.5), control_hz, PPOConfig())
     policy.configure({"skill": {"config": LAPTOP_VAE, "module": decoder, "prior_action": True}})

@@ -224,3 +224,22 @@ def test_every_learner_trains_on_its_device_and_its_checkpoint_loads_on_the_cpu(
     torch.manual_seed(1)
     got = step(twin, batch)
     assert got["loss"] == want["loss"], name
+
+
+def test_building_a_learner_or_a_policy_reseeds_no_gpu_and_restores_the_cpu_generator(monkeypatch):
+    """`torch.manual_seed` reseeds every CUDA generator too (lazily, on a machine without one), and
+    `fork_rng(devices=[])` restores only the CPU's: a GPU run's noise would depend on construction order."""
+    from workers.policies import VAEPolicy
+
+    reseeded: list[int] = []
+    monkeypatch.setattr(torch.cuda, "manual_seed_all", reseeded.append)
+    torch.random.default_generator.manual_seed(1234)
+    before = torch.random.get_rng_state()
+    PPOLearner(12, 2, PPOConfig(policy_hidden=(8,), value_hidden=(8,)))
+    DiscriminatorLearner(10, DiscriminatorConfig(hidden=(16,)), 3)
+    VAEPolicy(B, A, VAEConfig(latent_dim=4, encoder_hidden=(16,), policy_hidden=(16,)))
+    assert reseeded == []
+    assert torch.equal(torch.random.get_rng_state(), before)
+    first = PPOLearner(12, 2, PPOConfig(policy_hidden=(8,), value_hidden=(8,), seed=5)).module.state_dict()
+    again = PPOLearner(12, 2, PPOConfig(policy_hidden=(8,), value_hidden=(8,), seed=5)).module.state_dict()
+    assert all(torch.equal(first[k], again[k]) for k in first)  # still seeded

@@ -17,7 +17,8 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any
 
@@ -38,6 +39,16 @@ class DeviceError(RuntimeError):
 
 DEVICES = ("auto", "cpu", "cuda")
 COMPILE_MODES = ("eager", "default", "reduce-overhead")  # runtime.learner_compile: `Learner.compile`'s modes
+
+
+@contextmanager
+def cpu_seeded(seed: int) -> Iterator[None]:
+    """Inside: the CPU's global generator (what builds a module's initial weights) seeded with `seed`; after: as it
+    was. No GPU's generator is touched: `torch.manual_seed` inside `fork_rng(devices=[])` would reseed every CUDA
+    generator and leave them so, making a GPU run's noise depend on the order its parts were built in."""
+    with torch.random.fork_rng(devices=[]):
+        torch.random.default_generator.manual_seed(seed)
+        yield
 
 
 def resolve_device(setting: str, key: str = "runtime.learner_device") -> torch.device:

@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from workers.learners.base import Learner, all_finite, make_optimizer
+from workers.learners.base import Learner, all_finite, cpu_seeded, make_optimizer
 from workers.losses.discriminator import (
     check_loss_type,
     discriminator_loss,
@@ -154,8 +154,7 @@ class DiscriminatorLearner(Learner):
         device: str | torch.device = "cpu",
     ):
         self.config = config = config or DiscriminatorConfig()
-        with torch.random.fork_rng(devices=[]):
-            torch.manual_seed(seed)
+        with cpu_seeded(seed):
             module = Discriminator(
                 obs_dim, config.hidden, config.activation, config.num_skills, config.skill_embed_dim
             ).to(device)

@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from workers.learners.base import Learner, all_finite, make_optimizer
+from workers.learners.base import Learner, all_finite, cpu_seeded, make_optimizer
 from workers.losses.ppo import action_bound_loss, compute_gae, ppo_loss
 from workers.models.actor_critic import ActorCritic, HelperActorCritic, HelperLayout
 
@@ -168,8 +168,7 @@ class PPOLearner(Learner):
         helper: HelperLayout | None = None,
     ):
         cfg = config if config is not None else PPOConfig()
-        with torch.random.fork_rng(devices=[]):
-            torch.manual_seed(cfg.seed)
+        with cpu_seeded(cfg.seed):
             module = build_actor_critic(obs_dim, act_dim, cfg, helper)
         groups = [
             {"params": list(module.policy.parameters()), "lr": cfg.policy_lr},
