@@ -60,8 +60,16 @@ def posterior_mean_action(controller: VAEController, sim: Simulator, bs: np.ndar
     the controller tracking the reference, as the tracking evaluations and recordings drive it."""
     bs = sim.body_states() if bs is None else bs
     s = body_state.features(torch.from_numpy(bs))
-    posterior, _ = controller.encode(s, next_goal(controller.goal, sim, bs))
-    return controller.act(s, posterior.mean).numpy()
+    return posterior_mean(controller, s, next_goal(controller.goal, sim, bs)).cpu().numpy()
+
+
+def posterior_mean(controller: VAEController, s: torch.Tensor, goal: torch.Tensor) -> torch.Tensor:
+    """μ_π(s, μ_q(s, goal)) on the controller's device, whatever devices the state and goal come on (beside
+    MuJoCo Warp on CUDA the goal is made on the GPU, the state read on the CPU)."""
+    device = next(controller.parameters()).device
+    s, goal = s.to(device), goal.to(device)
+    posterior, _ = controller.encode(s, goal)
+    return controller.act(s, posterior.mean)
 
 
 def reference_targets(library: MotionLibrary) -> Policy:
