@@ -6,8 +6,8 @@ transfer script drive the controller with) with the goal made on the GPU, as bes
 state read and the controller held on the CPU. A fake CUDA matrix product aborts the process on a CPU-only build of
 torch, so nothing is computed on the fake GPU here: only moved to it and back. The controller is a stand-in that
 concatenates as ours does: fake tensors hold no values, and our networks' normalizers branch on their counts
-(`count == 0`), which fake tensors refuse (DataDependentOutputException), as they refuse every `.item()` of a learner's metrics. So the
-learners' updates on a GPU are checked by the GPU smoke (`scripts/gpu-smoke.sh`), not here.
+(`count == 0`), which fake tensors refuse (DataDependentOutputException), as they refuse every `.item()` of a
+learner's metrics. So the learners' updates on a GPU are checked by the GPU smoke (`scripts/gpu-smoke.sh`), not here.
 """
 
 from __future__ import annotations
