@@ -5,7 +5,7 @@ VENV ?= .venv
 BIN := $(VENV)/bin
 TORCH ?= torch==2.13.0
 
-.PHONY: setup samples system-packages run test test-all bench device-wheels device-warp lint
+.PHONY: setup samples system-packages run test test-all bench device-wheels device-warp gpu-smoke lint
 
 # Debian packages the project uses beside Python: PostgreSQL's server (MLflow's backend store in
 # `make cluster-up`) and the GL libraries of MuJoCo's offscreen renderer (evaluation videos:
@@ -52,6 +52,10 @@ device-wheels:
 # The MuJoCo Warp check's wheels, warp-lang in parts of at most 58 MiB (docs/warp.md, "On a GPU").
 device-warp:
 	PYTHON=$(BIN)/python sh scripts/device-warp.sh prepare
+
+# What the GPU smoke carries to the GPU machine (.device/smoke: its packages for Python 3.12, packed; the clips).
+gpu-smoke:
+	PYTHON=$(BIN)/python sh scripts/gpu-smoke.sh prepare
 
 lint:
 	$(BIN)/ruff check .

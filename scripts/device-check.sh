@@ -4,5 +4,5 @@
 # then runs the check. Arguments go to `python -m orchestrator.bench device` (e.g. --json --out FILE).
 set -e
 cd "$(dirname "$0")/.."
-python -m pip install --quiet --no-index --no-deps --target .device/site .device/wheels/*.whl
-PYTHONPATH=".device/site:." python -m orchestrator.bench device "$@"
+"${PYTHON:-python3}" -m pip install --quiet --no-index --no-deps --target .device/site .device/wheels/*.whl
+PYTHONPATH=".device/site:." "${PYTHON:-python3}" -m orchestrator.bench device "$@"
