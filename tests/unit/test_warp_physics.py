@@ -160,6 +160,27 @@ def test_graph_replay_steps_as_direct_launches_do(sim, model, character, walk_ru
     assert np.abs(sim.qpos.cpu().numpy() - qpos).max() > 100 * POS_TOL  # they moved
 
 
+def test_a_graph_is_captured_without_loading_every_module_warp_has(model, monkeypatch):
+    """`force_module_load=True` compiled every imported Warp module (mujoco_warp's flex, SDF and render kernels
+    too) in every process that captured a graph: minutes on a fresh machine. The first call runs directly
+    instead, loading what it launches, and the capture after it loads nothing."""
+    import warp
+
+    forced: list[bool] = []
+    capture = warp.ScopedCapture
+
+    def recording(*args, **kwargs):
+        forced.append(bool(kwargs.get("force_module_load", args[2] if len(args) > 2 else None)))
+        return capture(*args, **kwargs)
+
+    monkeypatch.setattr(warp, "ScopedCapture", recording)
+    physics = WarpPhysics(model, nworld=2, device=DEVICE)
+    physics.step(SUBSTEPS)
+    physics.step(SUBSTEPS)
+    assert forced and not any(forced)
+    assert SUBSTEPS in physics._graphs
+
+
 @pytest.mark.slow
 def test_worlds_touching_reads_only_the_current_contacts(sim, model, walk_run):
     """On the device, from the whole contact pool: the worlds with a contact involving a marked geom, as the

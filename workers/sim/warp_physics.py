@@ -373,9 +373,16 @@ class WarpPhysics:
             return
         graph = self._graphs.get(key)
         if graph is None:
-            with wp.ScopedDevice(self.device), wp.ScopedCapture(force_module_load=True) as capture:
+            # The first call runs directly, so that Warp loads the modules these kernels are in (a capture cannot
+            # load one) and no others: forcing every imported module to load (`force_module_load`) compiled all of
+            # mujoco_warp's, its flex, SDF and render kernels too, in every process, minutes on a cold cache. Then
+            # the same launches are captured, not run, for the calls after.
+            with wp.ScopedDevice(self.device):
                 launches(key)
-            graph = self._graphs[key] = capture.graph
+            with wp.ScopedDevice(self.device), wp.ScopedCapture(force_module_load=False) as capture:
+                launches(key)
+            self._graphs[key] = capture.graph
+            return
         wp.capture_launch(graph)
 
     def forward(self) -> None:
