@@ -166,6 +166,43 @@ def sim_device(cfg: Config) -> None:
             f"sim.device={cfg.sim.device}: no such GPU on this machine (torch {torch.__version__} sees "
             f"{torch.cuda.device_count()}); sim.device=cpu runs Warp's CPU kernels (slowly)"
         )
+    if uses_ray(r) and index > 0:
+        raise ConfigError(
+            f"sim.device={cfg.sim.device}: under Ray a rollout worker sees only the GPU Ray gives it, as cuda:0; "
+            "give sim.device=cuda (runtime=local runs on any GPU of this machine)"
+        )
+    warp_sees_gpus(cfg.sim.device)
+
+
+def warp_sees_gpus(device: str) -> None:
+    """ConfigError when Warp sees no CUDA device where torch does: warp-lang 1.19's binary is built with CUDA 13,
+    which NVIDIA drivers before R580 do not run, and the run would fail late, inside the simulator."""
+    import warp
+
+    warp.config.quiet = True
+    warp.init()
+    if warp.get_cuda_device_count() == 0:
+        raise ConfigError(
+            f"sim.device={device}: Warp {warp.__version__} sees no CUDA device where torch sees "
+            f"{torch.cuda.device_count()} (driver {_driver_version()}): its binary is built with CUDA 13, which needs "
+            "an NVIDIA driver of R580 or newer; sim.backend=mujoco runs without it"
+        )
+
+
+def _driver_version() -> str:
+    """The NVIDIA driver's version as nvidia-smi says it, else "unknown"."""
+    import shutil
+    import subprocess
+
+    smi = shutil.which("nvidia-smi")
+    if smi is None:
+        return "unknown: no nvidia-smi"
+    try:
+        query = [smi, "--query-gpu=driver_version", "--format=csv,noheader"]
+        out = subprocess.run(query, capture_output=True, timeout=10)
+    except (OSError, subprocess.TimeoutExpired):
+        return "unknown"
+    return out.stdout.decode().strip().splitlines()[0] if out.stdout.strip() else "unknown"
 
 
 def gpu_shares(cfg: Config, character: Character) -> None:

@@ -448,3 +448,23 @@ def test_a_replay_capacity_the_memory_cannot_hold_is_refused_before_anything_sta
     line = assert_refused(tmp_path, code, err, "algo.loop.replay_capacity=10000000000", "GiB this machine has")
     assert line.startswith("config error: ") and "transitions fit" in line
     assert not (tmp_path / "run").exists()
+
+
+def test_a_warp_gpu_the_ray_workers_cannot_see_or_warp_cannot_run_is_refused_before_anything_starts(
+    tmp_path, capsys, monkeypatch
+):
+    """Under Ray a worker sees its one GPU as cuda:0, so cuda:1 would fail inside the actor; and warp-lang's CUDA 13
+    binary sees no GPU under a driver older than R580 where torch sees one. This machine has no GPU: torch's and
+    Warp's counts are stood in for (two GPUs for torch; none, then one, for Warp)."""
+    pytest.importorskip("mujoco_warp")
+    import warp
+
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 2)
+    code, err = run_main(tmp_path, capsys, "motion=walk", "runtime=ray", "sim.backend=warp", "sim.device=cuda:1")
+    line = assert_refused(tmp_path, code, err, "sim.device=cuda:1", "under Ray a rollout worker sees only the GPU")
+    assert line.startswith("config error: ") and "give sim.device=cuda" in line
+    monkeypatch.setattr(warp, "get_cuda_device_count", lambda: 0)
+    code, err = run_main(tmp_path, capsys, "motion=walk", "sim.backend=warp", "sim.device=cuda:1")
+    line = assert_refused(tmp_path, code, err, "sim.device=cuda:1", "sees no CUDA device where torch sees 2")
+    assert "needs an NVIDIA driver of R580 or newer" in line
+    assert not (tmp_path / "run").exists()
