@@ -5,8 +5,9 @@ from the config here, so that none depends on the driver's objects:
 
 - `load_character` / `load_library` / `load_character_and_library`: the character's MJCF and the
   clips of `motion`, processed at the control rate (cached on disk by `workers.motion`);
-- `evaluation_sim_config`: the simulator as evaluation and rendering run it (the character's rates,
-  the terrain, falls detected; each protocol adds its own ends);
+- `sim_config`: the simulator as `sim` says (the character's rates, the terrain, falls detected);
+- `evaluation_sim_config`: as evaluation and rendering run it in the driver (each protocol adds its own ends):
+  on Warp's CPU device when the driver does not see `sim.device`'s GPU;
 - `collection_sim_config`: the simulator as rollout workers collect with it (the loop's termination
   rules and physics threads); a method may change it (`Method.sim_config`);
 - `seed_of`: the seed of one part of a run (`offset` names the part), so that parts never share a stream.
@@ -14,6 +15,8 @@ from the config here, so that none depends on the driver's objects:
 
 from __future__ import annotations
 
+import functools
+import sys
 from dataclasses import replace
 
 from orchestrator.schema import Config
@@ -43,9 +46,8 @@ def load_character_and_library(cfg: Config) -> tuple[Character, MotionLibrary]:
     return character, load_library(cfg, character)
 
 
-def evaluation_sim_config(cfg: Config) -> SimConfig:
-    """The simulator as evaluation (and rendering) runs it: the character's rates, the terrain, the engine and its
-    device (`sim`), falls detected."""
+def sim_config(cfg: Config) -> SimConfig:
+    """The simulator as `sim` says: the character's rates, the terrain, the engine and its device, falls detected."""
     return SimConfig(
         sim_hz=cfg.character.sim_hz,
         control_hz=cfg.character.control_hz,
@@ -55,11 +57,36 @@ def evaluation_sim_config(cfg: Config) -> SimConfig:
     )
 
 
+def evaluation_sim_config(cfg: Config) -> SimConfig:
+    """The simulator as evaluation (and rendering, and the model's export) runs it in this process, the driver:
+    `sim_config`, but MuJoCo Warp on Warp's CPU device when `sim.device` is a GPU this process does not see (a
+    cluster's driver without one; the rollout workers see theirs through Ray), the same engine, slowly."""
+    config = sim_config(cfg)
+    if config.backend == "warp" and config.device.startswith("cuda") and not _sees_gpu(config.device):
+        _say_once(
+            f"evaluation: this process sees no GPU for sim.device={config.device}: its MuJoCo Warp simulator runs on "
+            "Warp's CPU device (the same physics, slower)"
+        )
+        return replace(config, device="cpu")
+    return config
+
+
+def _sees_gpu(device: str) -> bool:
+    import torch
+
+    return int(device.partition(":")[2] or 0) < torch.cuda.device_count()
+
+
+@functools.cache
+def _say_once(line: str) -> None:
+    print(line, file=sys.stderr)
+
+
 def collection_sim_config(cfg: Config) -> SimConfig:
     """The simulator as the rollout workers run it: the loop's termination rules."""
     loop = cfg.algo.loop
     return replace(
-        evaluation_sim_config(cfg),
+        sim_config(cfg),
         max_episode_steps=loop.max_episode_steps,
         threads=cfg.runtime.sim_threads,
         end_on_fall=loop.end_on_fall,

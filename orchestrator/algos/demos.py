@@ -29,10 +29,10 @@ from typing import Any
 
 import numpy as np
 
+from orchestrator import world
 from orchestrator.algos.base import Component, Method
 from orchestrator.schema import ConfigError
 from orchestrator.upstream import DEMOS_FILE, MANIFEST_FILE, RUN_ID, Upstream, expert_weights
-from orchestrator.world import evaluation_sim_config
 from workers.body.mirror import mirror_maps
 from workers.demos import DemoSet
 from workers.learners.base import Weights
@@ -102,7 +102,7 @@ class Demos(Method):
     @classmethod
     def sim_config(cls, cfg):
         """Falls detected (they end a rollout); no tracking-failure end and no cap (the rollout's length is set)."""
-        return replace(evaluation_sim_config(cfg), threads=cfg.runtime.sim_threads)
+        return replace(world.sim_config(cfg), threads=cfg.runtime.sim_threads)
 
     def start(self, trainer) -> None:
         trainer.publish(self.expert_weights())

@@ -56,3 +56,18 @@ def test_the_tracking_action_takes_a_goal_made_on_the_gpu_to_the_controller_on_t
             controller.encode(s, goal)
         action = posterior_mean(controller, s, goal)
     assert action.device.type == controller_on and tuple(action.shape) == (4, A)
+
+
+def test_the_drivers_evaluation_runs_warp_on_the_cpu_where_it_sees_no_gpu_and_the_workers_keep_theirs(monkeypatch):
+    """Evaluation, videos and the model's export build their simulator in the driver, which holds no Ray GPU (a
+    cluster's may have none): on a GPU it does not see, the same engine on Warp's CPU device; the rollout workers,
+    which see theirs through Ray, keep `sim.device`. This machine has no GPU; torch's count stands in for one."""
+    from orchestrator.compose import compose, validate
+    from orchestrator.world import collection_sim_config, evaluation_sim_config
+
+    cfg = validate(compose(["scale=smoke", "sim.backend=warp", "sim.device=cuda", "run_dir=unused"]))
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 0)
+    assert evaluation_sim_config(cfg).device == "cpu" and evaluation_sim_config(cfg).backend == "warp"
+    assert collection_sim_config(cfg).device == "cuda"
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 1)
+    assert evaluation_sim_config(cfg).device == "cuda"
