@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import os
 import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -15,7 +16,7 @@ CHECKS = ["devices", "rollout", "learners", "compiled", "warp-graph", "tracking-
 
 
 def test_the_gpu_smokes_dry_run_passes_every_check_on_the_cpu():
-    env = {**os.environ, "DRY_RUN": "cpu"}
+    env = {**os.environ, "DRY_RUN": "cpu", "PYTHON": sys.executable}  # this environment, wherever it lives
     smoke = ["sh", "scripts/gpu-smoke.sh"]
     proc = subprocess.run(smoke, cwd=ROOT, env=env, capture_output=True, text=True, timeout=900)
     lines = [line for line in proc.stdout.splitlines() if line.split(" ")[0] in ("PASS", "FAIL", "SKIP")]
