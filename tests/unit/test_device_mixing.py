@@ -2,7 +2,8 @@
 
 The stand-in GPU (`standin_gpu.py`, beside this file): tensors with real values that say they are on another device
 and refuse to mix with CPU tensors as CUDA does. Under it: every learner's update and state dict, the same numbers
-as on the CPU; every rollout policy acting beside MuJoCo C; the tracking action with a real controller on the GPU.
+as on the CPU; every rollout policy acting beside MuJoCo C, alone and in a rollout worker's loop; the tracking
+action with a real controller on either side of a goal on the GPU.
 
 Fake tensors (torch's FakeTensorMode), below: CUDA tensors that hold no values and need no GPU, which refuse an
 operation between tensors of two devices as CUDA does (FakeTensorDeviceMismatchError).
@@ -13,10 +14,12 @@ state read and the controller held on the CPU. A fake CUDA matrix product aborts
 torch, so nothing is computed on the fake GPU here: only moved to it and back. The controller is a stand-in that
 concatenates as ours does: fake tensors hold no values, and our networks' normalizers branch on their counts
 (`count == 0`), which fake tensors refuse (DataDependentOutputException), as they refuse every `.item()` of a
-learner's metrics. So the learners' updates on a GPU are checked by the GPU smoke (`scripts/gpu-smoke.sh`), not here.
+learner's metrics: they are run under the stand-in GPU above instead.
 """
 
 from __future__ import annotations
+
+import contextlib
 
 import numpy as np
 import pytest
@@ -148,3 +151,23 @@ def test_the_tracking_action_of_a_real_controller_wherever_it_and_the_goal_are(c
             controller.encode(s, goal)
         action = posterior_mean(controller, s, goal).cpu()
     assert action.shape == (3, 28) and torch.isfinite(action).all()
+
+
+def test_a_rollout_worker_collects_with_each_policy_on_the_gpu_as_on_the_cpu(character, walk_run):
+    """The worker's own loop around the policy (observations, actions into MuJoCo C, the trajectory's arrays)
+    with the policy on the GPU: no tensor crosses unmoved, and the trajectory is the CPU's."""
+    from workers.rollout import RolloutWorker
+
+    for name, policy, give_weights in _policies(character):
+        trajectories = []
+        for on_gpu in (False, True):
+            with stand_in_gpu() if on_gpu else contextlib.nullcontext():
+                torch.manual_seed(0)
+                give_weights(policy)
+                worker = RolloutWorker(character, walk_run, 3, policy.to(DEVICE if on_gpu else "cpu"), seed=4)
+                trajectories.append(worker.collect(6))
+        cpu, gpu = trajectories
+        for key in ("states", "next_states", "actions", "done", "clip_id", "frame"):
+            np.testing.assert_allclose(
+                getattr(gpu, key), getattr(cpu, key), rtol=1e-5, atol=1e-6, err_msg=f"{name}: {key}"
+            )
