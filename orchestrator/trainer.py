@@ -117,6 +117,7 @@ class Trainer:
         self.recoveries = 0
         # Checkpoints that may have a copy in the store, oldest first (those of a resumed run's earlier commands too).
         self.in_store: list[Path] = sorted(checkpoint.newest_first(self.ckpt_dir))
+        self.forgotten: set[Path] = set()  # deleted from the store by this command
         self.system: SystemMetrics | None = None  # started by `run`
         self.model_uri: str | None = None  # the exported policy's MLflow model, after `run`
 
@@ -260,7 +261,10 @@ class Trainer:
         return path
 
     def _forget(self, path: Path) -> None:
-        """Delete checkpoint `path`'s copy in the store (a no-op there when it is gone already)."""
+        """Delete checkpoint `path`'s copy in the store, once (a no-op there when it is gone already)."""
+        if path in self.forgotten:  # deleted there when it left the store's newest, now leaving the run directory
+            return
+        self.forgotten.add(path)
         if path in self.in_store:
             self.in_store.remove(path)
         self.logger.delete_artifact(f"checkpoints/{path.name}")
