@@ -127,8 +127,8 @@ def save(directory: str | Path, iteration: int, state: dict[str, Any], stem: str
 
 
 class _Writer:
-    """The file torch.save writes to, keeping the OSError of a write that failed (torch's zip writer turns it into
-    a RuntimeError that does not say why)."""
+    """The file torch.save writes to, keeping what interrupted a write (an OSError, a KeyboardInterrupt): torch's
+    zip writer turns it into a RuntimeError that does not say why."""
 
     def __init__(self, f: Any):
         self.f, self.error = f, None
@@ -136,7 +136,7 @@ class _Writer:
     def write(self, data: Any) -> int:
         try:
             return self.f.write(data)
-        except OSError as e:
+        except BaseException as e:  # a full disk, or Ctrl-C in the middle of a write: re-raised as it was
             self.error = e
             raise
 

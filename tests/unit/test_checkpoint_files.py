@@ -161,3 +161,34 @@ def test_a_checkpoint_changed_after_its_save_is_refused_by_its_digest(tmp_path):
         checkpoint.load(path)
     checkpoint.digest_path(path).unlink()  # a checkpoint from before digests loads unchecked
     assert checkpoint.load(path)["loop"]["iteration"] == 7
+
+
+def test_ctrl_c_in_the_middle_of_a_write_is_a_keyboard_interrupt_and_leaves_no_tmp(tmp_path, monkeypatch):
+    """torch's zip writer turned a KeyboardInterrupt raised by a write into `RuntimeError: unexpected pos`, and
+    the run ended with a traceback instead of KILLED with the command that resumes it."""
+    real_open = open
+
+    class Interrupting:
+        def __init__(self, f):
+            self.f, self.calls = f, 0
+
+        def write(self, data):
+            self.calls += 1
+            if self.calls == 3:
+                raise KeyboardInterrupt
+            return self.f.write(data)
+
+        def __getattr__(self, name):
+            return getattr(self.f, name)
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            return self.f.__exit__(*exc)
+
+    checkpoint.save(tmp_path, 1, state(1))
+    monkeypatch.setattr(checkpoint, "open", lambda *a, **k: Interrupting(real_open(*a, **k)), raising=False)
+    with pytest.raises(KeyboardInterrupt):
+        checkpoint.save(tmp_path, 2, {"x": torch.zeros(100_000)})
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["ckpt-0000001.pt", "ckpt-0000001.pt.sha256"]
