@@ -28,7 +28,7 @@ from tqdm import tqdm
 from orchestrator import checkpoint
 from orchestrator.algos.base import Method, method_class
 from orchestrator.components.rollout import RolloutActor
-from orchestrator.runtime.base import Resources, Runtime, learner_gpus, worker_gpus
+from orchestrator.runtime.base import Resources, Runtime, driver_gpus, learner_gpus, worker_gpus
 from orchestrator.runtime.cores import assign
 from orchestrator.schema import Config
 from orchestrator.tracking.base import RunLogger
@@ -85,7 +85,9 @@ class Trainer:
             replace(replay_res if c.role == "replay" else learner_res, cores=cores.get(c.actor, ())) for c in components
         ]
         worker_res = [replace(worker_res, cores=cores.get(w, ())) for w in workers]
-        runtime.reserve(res + worker_res)
+        # Last, a bundle nothing is spawned in: the driver's own evaluation on the workers' GPU, in Ray's accounting.
+        driver = driver_gpus(r, cfg.sim, num_workers, learners)
+        runtime.reserve(res + worker_res + ([Resources(cpus=0.0, gpus=driver)] if driver else []))
         if r.learner_compile != "eager":
             log.info(
                 "runtime.learner_compile=%s: each learner compiles its loss at its first update, minutes the first "

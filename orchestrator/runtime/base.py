@@ -68,18 +68,18 @@ def learner_gpus(runtime_cfg: Any, learners: int, gpu_workers: int = 0) -> float
     """The GPUs each learner actor reserves under Ray: `runtime.learner_gpus` when it is set; with
     `learner_device` auto or cuda, a Ray started for the run (no `address`) and a GPU on this machine, an
     equal share of one GPU per learner (all learners on the first GPU), shared with `gpu_workers` rollout
-    workers that simulate on it too (`worker_gpus`); else none."""
+    workers that simulate on it too (`worker_gpus`) and then with the driver (`driver_gpus`); else none."""
     r = runtime_cfg
     if not uses_ray(r) or r.learner_gpus > 0 or r.learner_device == "cpu" or r.address or learners < 1:
         return float(r.learner_gpus) if uses_ray(r) else 0.0
-    return _share(learners + gpu_workers)
+    return _share(learners + gpu_workers + (gpu_workers > 0))
 
 
 def worker_gpus(runtime_cfg: Any, sim: Any, workers: int, learners: int) -> float:
     """The GPUs each rollout worker reserves under Ray: `runtime.worker_gpus` when it is set; with the warp
     simulator on a GPU (`sim.device` cuda), a Ray started for the run and a GPU here, an equal share of the
-    first GPU with the learners that take one (`learner_gpus`); else none. Ray gives an actor without a GPU
-    share no GPU to see, so a cuda simulator under Ray needs one."""
+    first GPU with the learners that take one (`learner_gpus`) and the driver (`driver_gpus`); else none. Ray gives
+    an actor without a GPU share no GPU to see, so a cuda simulator under Ray needs one."""
     r = runtime_cfg
     on_gpu = sim.backend == "warp" and sim.device.startswith("cuda")
     if not uses_ray(r) or r.worker_gpus > 0 or not on_gpu or r.address or workers < 1:
@@ -94,9 +94,21 @@ def worker_gpus(runtime_cfg: Any, sim: Any, workers: int, learners: int) -> floa
                 f"({torch.cuda.device_count()}), leaving none to the rollout workers' simulator (sim.device="
                 f"{sim.device}): lower it, or set runtime.worker_gpus"
             )
-        return _share(workers, min(left, 1.0))
+        return _share(workers + 1, min(left, 1.0))
     sharing = learners if r.learner_device != "cpu" else 0
-    return _share(workers + sharing)
+    return _share(workers + 1 + sharing)
+
+
+def driver_gpus(runtime_cfg: Any, sim: Any, workers: int, learners: int) -> float:
+    """The share of the GPU that a Ray started for the run holds for the driver itself, which evaluates, renders and
+    exports on the rollout workers' simulator (`orchestrator.world.evaluation_sim_config`: MuJoCo Warp on
+    `sim.device`, a GPU it sees on this machine): a rollout worker's automatic share, so that Ray's accounting
+    covers every process on the GPU. None where the workers' shares are set (`runtime.worker_gpus`: the setter's
+    accounting) or the cluster is another's (`runtime.address`: its driver may have no GPU, and evaluates on Warp's
+    CPU device then)."""
+    if runtime_cfg.worker_gpus > 0:
+        return 0.0
+    return worker_gpus(runtime_cfg, sim, workers, learners)
 
 
 def _share(actors: int, gpus: float = 1.0) -> float:

@@ -120,8 +120,8 @@ class RayRuntime(Runtime):
         have = ray.cluster_resources().get("GPU", 0.0)
         if gpus > have:  # Ray would wait for the placement group without end
             raise ConfigError(
-                f"runtime.learner_gpus, runtime.worker_gpus: the learners and rollout workers ask for {gpus:g} GPU(s) "
-                f"in all, the Ray cluster has {have:g}"
+                f"runtime.learner_gpus, runtime.worker_gpus: the learners, rollout workers and driver ask for "
+                f"{gpus:g} GPU(s) in all, the Ray cluster has {have:g}"
             )
         specs = [{"CPU": b.cpus, **({"GPU": b.gpus} if b.gpus else {})} for b in bundles]
         self.group = placement_group(specs, strategy=self.placement)

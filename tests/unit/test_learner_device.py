@@ -56,7 +56,7 @@ def test_a_ray_learner_takes_a_share_of_the_gpu_only_when_there_is_one(monkeypat
     assert learner_gpus(SimpleNamespace(**{**ray, "address": "auto"}), 2) == 0.0  # a cluster's: set it
     local = SimpleNamespace(_target_="orchestrator.runtime.local.LocalRuntime", learner_device="auto", learner_gpus=0)
     assert learner_gpus(local, 2) == 0.0
-    assert learner_gpus(SimpleNamespace(**ray), 2, gpu_workers=2) == 0.25  # sharing with two simulating workers
+    assert learner_gpus(SimpleNamespace(**ray), 2, gpu_workers=2) == 0.2  # with two simulating workers and the driver
 
 
 def test_rollout_workers_take_a_share_of_the_gpu_only_for_a_warp_simulator_on_it(monkeypatch):
@@ -70,13 +70,13 @@ def test_rollout_workers_take_a_share_of_the_gpu_only_for_a_warp_simulator_on_it
     )  # fmt: skip
     warp = SimpleNamespace(backend="warp", device="cuda")
     monkeypatch.setattr(torch.cuda, "device_count", lambda: 1)
-    assert worker_gpus(SimpleNamespace(**ray), warp, 2, 2) == 0.25  # two workers and two learners on one GPU
-    assert worker_gpus(SimpleNamespace(**{**ray, "learner_device": "cpu"}), warp, 2, 2) == 0.5
-    assert worker_gpus(SimpleNamespace(**{**ray, "learner_gpus": 0.25}), warp, 2, 2) == 0.25  # what they leave
+    assert worker_gpus(SimpleNamespace(**ray), warp, 2, 2) == 0.2  # two workers, two learners and the driver
+    assert worker_gpus(SimpleNamespace(**{**ray, "learner_device": "cpu"}), warp, 2, 2) == 0.3333
+    assert worker_gpus(SimpleNamespace(**{**ray, "learner_gpus": 0.25}), warp, 2, 2) == 0.1666  # what they leave
     with pytest.raises(ConfigError, match=r"runtime.learner_gpus=1.0 for 2 learner\(s\) takes every GPU of this"):
         worker_gpus(SimpleNamespace(**{**ray, "learner_gpus": 1.0}), warp, 2, 2)  # on one GPU: none left
     monkeypatch.setattr(torch.cuda, "device_count", lambda: 3)
-    assert worker_gpus(SimpleNamespace(**{**ray, "learner_gpus": 1.0}), warp, 2, 2) == 0.5  # learners set apart
+    assert worker_gpus(SimpleNamespace(**{**ray, "learner_gpus": 1.0}), warp, 2, 2) == 0.3333  # learners apart
     monkeypatch.setattr(torch.cuda, "device_count", lambda: 1)
     assert worker_gpus(SimpleNamespace(**{**ray, "worker_gpus": 0.1}), warp, 2, 2) == 0.1  # as set
     assert worker_gpus(SimpleNamespace(**{**ray, "address": "auto"}), warp, 2, 2) == 0.0  # a cluster's: set it
@@ -91,7 +91,7 @@ def test_automatic_gpu_shares_never_add_up_to_more_than_one_gpu(monkeypatch):
     actors. The shares are rounded down."""
     from types import SimpleNamespace
 
-    from orchestrator.runtime.base import learner_gpus, worker_gpus
+    from orchestrator.runtime.base import driver_gpus, learner_gpus, worker_gpus
 
     monkeypatch.setattr(torch.cuda, "device_count", lambda: 1)
     ray = dict(
@@ -101,10 +101,12 @@ def test_automatic_gpu_shares_never_add_up_to_more_than_one_gpu(monkeypatch):
     warp = SimpleNamespace(backend="warp", device="cuda")
     for learners in range(1, 5):
         for workers in range(1, 20):
-            total = learners * learner_gpus(SimpleNamespace(**ray), learners, workers)
-            total += workers * worker_gpus(SimpleNamespace(**ray), warp, workers, learners)
-            assert 0.99 < total <= 1.0, (learners, workers, total)
-    assert learner_gpus(SimpleNamespace(**ray), 1, gpu_workers=5) == 0.1666
+            # in Ray's units, 1e-4 GPU (10 x 0.1 is 1.0000000000000002 in floats)
+            total = learners * round(learner_gpus(SimpleNamespace(**ray), learners, workers) * 10_000)
+            total += workers * round(worker_gpus(SimpleNamespace(**ray), warp, workers, learners) * 10_000)
+            total += round(driver_gpus(SimpleNamespace(**ray), warp, workers, learners) * 10_000)
+            assert 9_900 < total <= 10_000, (learners, workers, total)
+    assert learner_gpus(SimpleNamespace(**ray), 1, gpu_workers=4) == 0.1666  # with four workers and the driver
 
 
 class _Reserved(Exception):
@@ -131,9 +133,10 @@ def test_the_trainer_reserves_the_rollout_workers_gpu_shares(monkeypatch, tmp_pa
             Trainer(cfg, _ReserveOnly(), NoOpLogger(), character)
         bundles = e.value.args[0]
         shares[name] = [b.gpus for b in bundles]
-    # controlvae: replay, world model, VAE, then two rollout workers; the two learners and two workers share a GPU
-    assert shares["auto"] == [0.0, 0.25, 0.25, 0.25, 0.25]
-    assert shares["set"] == [0.0, 0.5, 0.5, 0.1, 0.1]  # the workers' as set, the learners share theirs
+    # controlvae: replay, world model, VAE, two rollout workers, then the driver's own bundle (it evaluates on the
+    # workers' GPU simulator): the two learners, two workers and the driver share a GPU
+    assert shares["auto"] == [0.0, 0.2, 0.2, 0.2, 0.2, 0.2]
+    assert shares["set"] == [0.0, 0.5, 0.5, 0.1, 0.1]  # the workers' as set, the learners share theirs, no driver's
     cfg = validate(compose([*common, "sim.device=cpu"]))
     with pytest.raises(_Reserved) as e:
         Trainer(cfg, _ReserveOnly(), NoOpLogger(), character)
