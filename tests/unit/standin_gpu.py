@@ -1,6 +1,7 @@
 """A stand-in GPU for a machine without one: tensors that hold real values, computed on the CPU, but say they are
 on another device (`DEVICE`, PyTorch's `meta`), and refuse, as CUDA does, any operation that mixes them with CPU
-tensors (0-dimensional ones aside, which CUDA takes too) and `.numpy()`.
+tensors (0-dimensional ones aside, which CUDA takes too), `.numpy()`, and a draw from a generator of the other
+device (a CPU generator filling a GPU tensor, or the reverse).
 
     with stand_in_gpu():
         learner = build(DEVICE)          # its networks, optimizer and generators "on the GPU"
@@ -12,7 +13,8 @@ normaliser's first-batch branch, a learner's metrics) runs. The meta device has 
 these tensors keep their values inside (`OnDevice.inner`).
 
 What it cannot catch: kernels only CUDA has, and their numerics; torch.compile's graphs; the memory MuJoCo Warp
-shares with torch; anything that states its device as the string "cuda" (it is "meta" here).
+shares with torch, and Warp's own tensors on a GPU (on Warp's CPU device they are CPU tensors, the mirror case);
+anything that states its device as the string "cuda" (it is "meta" here).
 
 It patches, while it is on: module conversion to swap parameters (`torch.__future__`), torch's foreach
 support check to take the meta device, and `torch.Generator(device=meta)` to give a CPU generator (the values are
@@ -74,6 +76,10 @@ def _run(func, args, kwargs):
     if "device" in seen and len(seen) > 1 and func not in _MOVES:
         raise RuntimeError(f"{func}: tensors on the GPU and on the {'/'.join(sorted(seen - {'device'}))} mixed")
     wanted = _on_device(kwargs.get("device"))
+    generator = kwargs.get("generator")
+    if generator is not None and (generator._cdata in _DEVICE_GENERATORS) != bool(wanted or "device" in seen):
+        where = "GPU" if generator._cdata in _DEVICE_GENERATORS else "cpu"
+        raise RuntimeError(f"{func}: a generator on the {where} drawing for the other device (CUDA refuses it)")
     unwrapped_args = tree_map(lambda x: x.inner if isinstance(x, OnDevice) else x, args)
     unwrapped_kwargs = tree_map(lambda x: x.inner if isinstance(x, OnDevice) else x, kwargs)
     if wanted:
@@ -120,11 +126,21 @@ class _Moves(TorchFunctionMode):
 _GENERATOR = torch.Generator
 
 
+# Those made "on the GPU", by their C++ object (the dispatcher hands on another Python object for the same generator),
+# held while the stand-in is on.
+_DEVICE_GENERATORS: dict[int, torch.Generator] = {}
+
+
 class _Generator:
-    """torch.Generator, on the CPU for the stand-in device (a class, as annotations `torch.Generator | None` need)."""
+    """torch.Generator, on the CPU for the stand-in device (a class, as annotations `torch.Generator | None` need);
+    one made for the stand-in device is remembered, so that a draw on the wrong side of the two is refused."""
 
     def __new__(cls, device=None):
-        return _GENERATOR() if device is None or _on_device(device) else _GENERATOR(device=device)
+        if device is not None and _on_device(device):
+            generator = _GENERATOR()
+            _DEVICE_GENERATORS[generator._cdata] = generator
+            return generator
+        return _GENERATOR() if device is None else _GENERATOR(device=device)
 
 
 @contextlib.contextmanager
@@ -143,6 +159,7 @@ def stand_in_gpu() -> Iterator[None]:
             yield
     finally:
         torch.Generator = _GENERATOR
+        _DEVICE_GENERATORS.clear()
         for m in holders:
             m._device_has_foreach_support = supported
         torch.__future__.set_swap_module_params_on_conversion(swap)

@@ -1,9 +1,19 @@
 """Device mixing caught on a CPU, under a stand-in GPU.
 
 The stand-in (`standin_gpu.py`, beside this file): tensors with real values that say they are on another device
-and refuse to mix with CPU tensors as CUDA does. Under it: every learner's update and state dict, the same numbers
-as on the CPU; every rollout policy acting beside MuJoCo C, alone and in a rollout worker's loop; the tracking
-action with a real controller on either side of a goal on the GPU.
+and refuse to mix with CPU tensors (or a generator of the other device) as CUDA does. Under it, each computing the
+same numbers as on the CPU:
+- every learner's update and state dict;
+- every rollout policy acting beside MuJoCo C, alone and in a rollout worker's loop with every recorder;
+- the tracking action with a real controller on either side of a goal on the GPU;
+- every evaluation protocol of a VAE controller and the recordings its videos render, beside MuJoCo C, and (slow)
+  the tracking ones beside MuJoCo Warp on its CPU device, which makes the goal there;
+- a PPO policy's pose-error episodes and video episode, and a task policy's evaluation.
+
+What it found, beyond issue 45's list: the time-until-fall, random-sampling and fall-video rollouts drew z with a
+CPU generator beside the controller's device and read its action with `.numpy()` (fixed:
+`workers.evaluation.controller.prior_action`). Rendering itself
+(qpos to pixels, in a child process) and the model's export hold no tensor of a device.
 
 Fake tensors (torch's FakeTensorMode) were tried first and cannot serve: they hold no values, so our normalisers'
 first-batch branch (`count == 0`) and every learner's `.item()` refuse them, and a fake CUDA matrix product aborts the
@@ -36,6 +46,9 @@ def test_the_stand_in_gpu_refuses_a_mix_and_numpy_as_cuda_does():
         assert float((x + torch.tensor(1.0)).sum()) == 6.0  # a 0-dimensional CPU tensor mixes, as on CUDA
         with pytest.raises(RuntimeError):
             x.numpy()
+        with pytest.raises(RuntimeError, match="generator on the cpu"):
+            torch.randn(3, generator=torch.Generator().manual_seed(0), device=DEVICE)
+        assert torch.randn(3, generator=torch.Generator(device=DEVICE), device=DEVICE).device == DEVICE
 
 
 @pytest.mark.parametrize("index", range(7))
@@ -110,8 +123,10 @@ def test_the_tracking_action_of_a_real_controller_wherever_it_and_the_goal_are(c
 
 
 def test_a_rollout_worker_collects_with_each_policy_on_the_gpu_as_on_the_cpu(character, walk_run):
-    """The worker's own loop around the policy (observations, actions into MuJoCo C, the trajectory's arrays)
-    with the policy on the GPU: no tensor crosses unmoved, and the trajectory is the CPU's."""
+    """The worker's own loop around the policy (observations, actions into MuJoCo C, the trajectory's arrays, the
+    recorders' extras) with the policy on the GPU: no tensor crosses unmoved, and the trajectory is the CPU's."""
+    from workers.body.features import StateLayout
+    from workers.recorders import AMPFeatures, ImitationReward, TrackingReward
     from workers.rollout import RolloutWorker
 
     for name, policy, give_weights in _policies(character):
@@ -120,10 +135,115 @@ def test_a_rollout_worker_collects_with_each_policy_on_the_gpu_as_on_the_cpu(cha
             with stand_in_gpu() if on_gpu else contextlib.nullcontext():
                 torch.manual_seed(0)
                 give_weights(policy)
-                worker = RolloutWorker(character, walk_run, 3, policy.to(DEVICE if on_gpu else "cpu"), seed=4)
+                recorders = [AMPFeatures(character), ImitationReward(character), TrackingReward(np.ones(StateLayout(character.num_bodies).dim))]
+                policy.to(DEVICE if on_gpu else "cpu")
+                worker = RolloutWorker(character, walk_run, 3, policy, seed=4, recorders=recorders)
                 trajectories.append(worker.collect(6))
         cpu, gpu = trajectories
         for key in ("states", "next_states", "actions", "done", "clip_id", "frame"):
             np.testing.assert_allclose(
                 getattr(gpu, key), getattr(cpu, key), rtol=1e-5, atol=1e-6, err_msg=f"{name}: {key}"
             )
+        assert cpu.extras.keys() == gpu.extras.keys() and len(cpu.extras) >= 3, name
+        for key, value in cpu.extras.items():
+            np.testing.assert_allclose(gpu.extras[key], value, rtol=1e-5, atol=1e-6, err_msg=f"{name}: {key}")
+
+
+def _controller(character):
+    from workers.learners.vae import VAEConfig, build_controller
+
+    torch.manual_seed(0)
+    config = VAEConfig(latent_dim=4, encoder_hidden=(16,), policy_hidden=(16,))
+    return build_controller(character.num_bodies, character.num_actions, config)
+
+
+def _evaluations():
+    """(name, run(controller, character, library, sim config) -> what it measures or records, as arrays): every
+    evaluation protocol and recording that drives a VAE controller, small."""
+    from workers.evaluation import controller as protocols
+    from workers.evaluation.render import record_fall_rollouts, record_tracking
+    from workers.evaluation.success import tracking_success
+
+    def success(c, ch, lib, sc):  # with PULSE's student, as `orchestrator.algos.pulse` runs it (without gradients)
+        with torch.no_grad():
+            return tracking_success(lambda sim, bs: protocols.posterior_mean_action(c, sim, bs), ch, lib, 0.2, sc)
+
+    return [
+        ("time_until_fall", lambda c, ch, lib, sc: protocols.time_until_fall(c, ch, lib, 3, 0.4, sim_config=sc)),
+        ("tracking_error", lambda c, ch, lib, sc: protocols.tracking_error(c, lib, ch, 0.2, sim_config=sc)),
+        ("random_sampling", lambda c, ch, lib, sc: protocols.random_sampling(c, ch, lib, 3, 0.2, sim_config=sc)),
+        ("tracking_success", success),
+        ("record_fall_rollouts", lambda c, ch, lib, sc: [r.qpos for r in record_fall_rollouts(c, ch, lib, 2, 0.3, sc)]),
+        ("record_tracking", lambda c, ch, lib, sc: record_tracking(c, ch, lib, 0.2, sc).qpos),
+    ]
+
+
+def _arrays(result) -> list[np.ndarray]:
+    if isinstance(result, dict):
+        return [a for k in sorted(result) for a in _arrays(result[k])]
+    if isinstance(result, list | tuple) and result and not isinstance(result[0], int | float):
+        return [a for x in result for a in _arrays(x)]
+    return [np.asarray(result, float)]
+
+
+@pytest.mark.parametrize("index", range(6))
+def test_every_evaluation_of_a_controller_on_the_gpu_beside_mujoco_c_measures_what_the_cpu_does(
+    character, walk_run, index
+):
+    """The protocols (time until fall, tracking error, random sampling, PULSE's tracking success with the student)
+    and the recordings the videos render, with the controller on the GPU and MuJoCo C on the CPU: z's noise from
+    the same CPU stream, so the same numbers. Before `prior_action`, z was drawn with a CPU generator beside a
+    controller on the GPU and its action read by `.numpy()`: refused."""
+    name, run = _evaluations()[index]
+    controller = _controller(character)
+    want = _arrays(run(controller, character, walk_run, None))
+    with stand_in_gpu():
+        got = _arrays(run(controller.to(DEVICE), character, walk_run, None))
+    assert len(got) == len(want) > 0, name
+    for g, w in zip(got, want, strict=True):
+        np.testing.assert_allclose(g, w, rtol=1e-5, atol=1e-6, err_msg=name)
+
+
+def test_a_ppo_policys_evaluation_and_video_episode_on_the_gpu_as_on_the_cpu(character, walk_run):
+    """AMP's pose error after DTW and its video's episode, and a task policy's evaluation, with the policies on
+    the GPU beside MuJoCo C."""
+    from workers.evaluation.imitation import pose_error_episodes
+    from workers.evaluation.render import record_policy_episode
+    from workers.evaluation.tasks import evaluate_task_policy
+
+    policies = dict((name, (policy, give)) for name, policy, give in _policies(character))
+    gaussian, _ = policies["gaussian"]
+    task, configure = policies["task"]
+    results = []
+    for on_gpu in (False, True):
+        with stand_in_gpu() if on_gpu else contextlib.nullcontext():
+            torch.manual_seed(0)
+            configure(task)
+            gaussian.to(DEVICE if on_gpu else "cpu")
+            task.to(DEVICE if on_gpu else "cpu")
+            pose = pose_error_episodes(gaussian.mean_action, character, walk_run, 2, 0.2, seed=3)
+            episode = record_policy_episode(gaussian.mean_action, character, walk_run, 0.2, seed=3)
+            evaluated = evaluate_task_policy(task, character, walk_run, 2, 0.2, seed=3)
+            results.append(_arrays([pose["curve"], episode.qpos, evaluated["curve"], evaluated["roots"]]))
+    for g, w in zip(results[1], results[0], strict=True):
+        np.testing.assert_allclose(g, w, rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.slow
+def test_the_tracking_evaluations_on_warps_cpu_device_with_the_controller_on_the_gpu(character, walk_run):
+    """MuJoCo Warp on its CPU device makes the tracking goal there (a torch tensor, `next_goal`); the controller on
+    the GPU: the mirror of a CUDA simulator beside a CPU controller (the first bug of issue 45). Compiles MuJoCo
+    Warp's kernels on a cold cache, hence `slow`."""
+    pytest.importorskip("mujoco_warp")
+    from workers.evaluation.controller import time_until_fall, tracking_error
+    from workers.sim.env import SimConfig
+
+    warp = SimConfig(backend="warp", device="cpu")
+    controller = _controller(character)
+    want = [tracking_error(controller, walk_run, character, 0.2, warp)["mean"],
+            time_until_fall(controller, character, walk_run, 2, 0.2, sim_config=warp)["times"]]  # fmt: skip
+    with stand_in_gpu():
+        controller.to(DEVICE)
+        got = [tracking_error(controller, walk_run, character, 0.2, warp)["mean"],
+               time_until_fall(controller, character, walk_run, 2, 0.2, sim_config=warp)["times"]]  # fmt: skip
+    np.testing.assert_allclose(np.hstack(got), np.hstack(want), rtol=1e-5, atol=1e-6)

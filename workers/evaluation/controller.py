@@ -26,6 +26,7 @@ import torch
 
 from workers.body.character import Character
 from workers.models import body_state
+from workers.models.nets import gaussian
 from workers.models.vae import VAEController
 from workers.motion.library import MotionLibrary
 from workers.sim.env import SimConfig, Simulator, make_sim, without_tracking_termination
@@ -61,6 +62,17 @@ def posterior_mean_action(controller: VAEController, sim: Simulator, bs: np.ndar
     bs = sim.body_states() if bs is None else bs
     s = body_state.features(torch.from_numpy(bs))
     return posterior_mean(controller, s, next_goal(controller.goal, sim, bs)).cpu().numpy()
+
+
+def prior_action(controller: VAEController, sim: Simulator, generator: torch.Generator) -> np.ndarray:
+    """a = μ_π(s, z) [N, A] with z ~ p(z | s), for the simulated characters, on the controller's device; z's noise
+    comes from `generator`, a CPU stream, and then moves, so that a seed draws the same z wherever the controller is
+    (on the CPU, exactly `prior_dist(s).rsample(generator)`)."""
+    device = next(controller.parameters()).device
+    s = sim_features(sim).to(device)
+    prior = controller.prior_dist(s)
+    z = prior.rsample(eps=gaussian(prior.mean.shape, generator, prior.mean.dtype, device))
+    return controller.act(s, z).cpu().numpy()
 
 
 def posterior_mean(controller: VAEController, s: torch.Tensor, goal: torch.Tensor) -> torch.Tensor:
@@ -138,9 +150,7 @@ def time_until_fall(
     fall_step = np.zeros(num_rollouts, int)  # 0: has not fallen
     with evaluation_mode(controller):
         for t in range(1, max_steps + 1):
-            s = sim_features(sim)
-            z = controller.prior_dist(s).rsample(generator)
-            result = sim.step(controller.act(s, z).numpy())
+            result = sim.step(prior_action(controller, sim, generator))
             fall_step[(fall_step == 0) & result.fell] = t
             if (fall_step > 0).all():
                 break
@@ -256,9 +266,7 @@ def random_sampling(
     fell = np.zeros(num_rollouts, bool)
     with evaluation_mode(controller):
         for t in range(steps):
-            s = sim_features(sim)
-            z = controller.prior_dist(s).rsample(generator)
-            result = sim.step(controller.act(s, z).numpy())
+            result = sim.step(prior_action(controller, sim, generator))
             fell |= result.fell
             roots[t + 1] = result.kin.xpos[:, 0, :2]
     roots = np.swapaxes(roots - roots[:1], 0, 1)

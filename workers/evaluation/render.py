@@ -83,7 +83,7 @@ def record_fall_rollouts(
     """
     import torch
 
-    from workers.evaluation.controller import evaluation_mode, fall_start, sim_features
+    from workers.evaluation.controller import evaluation_mode, fall_start, prior_action
     from workers.sim.env import make_sim, without_tracking_termination
 
     if num_rollouts < 1:
@@ -99,9 +99,7 @@ def record_fall_rollouts(
     end = np.full(num_rollouts, steps)  # the last step shown
     with evaluation_mode(controller):
         for t in range(1, steps + 1):
-            s = sim_features(sim)
-            z = controller.prior_dist(s).rsample(generator)
-            result = sim.step(controller.act(s, z).numpy())
+            result = sim.step(prior_action(controller, sim, generator))
             qpos.append(result.kin.qpos)
             end = np.where(result.fell & (end == steps), np.minimum(t + tail, steps), end)
             if (t >= end).all():
