@@ -135,7 +135,8 @@ def test_a_rollout_worker_collects_with_each_policy_on_the_gpu_as_on_the_cpu(cha
             with stand_in_gpu() if on_gpu else contextlib.nullcontext():
                 torch.manual_seed(0)
                 give_weights(policy)
-                recorders = [AMPFeatures(character), ImitationReward(character), TrackingReward(np.ones(StateLayout(character.num_bodies).dim))]
+                weights = np.ones(StateLayout(character.num_bodies).dim)
+                recorders = [AMPFeatures(character), ImitationReward(character), TrackingReward(weights)]
                 policy.to(DEVICE if on_gpu else "cpu")
                 worker = RolloutWorker(character, walk_run, 3, policy, seed=4, recorders=recorders)
                 trajectories.append(worker.collect(6))
