@@ -5,24 +5,25 @@
 # when one fails.
 #
 # Here (network), once:  sh scripts/gpu-smoke.sh prepare      (make gpu-smoke)
-#   installs the packages the checks need beside torch and numpy (MuJoCo, Hydra, SciPy and dtw-python, matplotlib:
-#   constraints.txt's pins) for Python 3.12 into a folder, drops their tests, packs it as .device/smoke/site.tar.xz
-#   (about 49 MB: xz packs them tighter than their wheels, 85 MB), copies the bundled clips beside it, and prints
-#   what the call carries.
+#   installs the packages the checks need that the GPU machine does not have (MuJoCo, MuJoCo Warp and warp-lang,
+#   Hydra, dtw-python: constraints.txt's pins; its image has torch, NumPy, SciPy, matplotlib, PyYAML, tqdm, psutil,
+#   absl-py and etils) for Python 3.12 into a folder, drops what no check uses (tests, examples, MuJoCo's studio and
+#   docs, Warp's CPU compiler warp-clang.so: the device's Warp runs on CUDA), zeroes warp.so's GPU code for
+#   architectures other than the machine's (scripts/keep_cubins.py; KEEP_SM=90, the H100's and H200's), adds the
+#   bundled clips, packs it with xz's x86 filter as .device/smoke/site.tar.xz (warp.so is 299 MB: 78 MB with plain
+#   xz -9e, 58 MiB with the filter; the whole bundle, the other GPUs' code zeroed, 61 MiB: with the tree, 63.5 of
+#   the call's 64 MiB on 2026-12-07), and prints what the call carries. About 5 minutes (xz on one core).
 # There:  sh scripts/gpu-smoke.sh        with carry [".device/smoke"]
-#   unpacks it (Python's tarfile, a few seconds) and runs the checks on cuda. warp-lang does not fit (149 MB; its
-#   warp.so is 78 MB even xz-compressed): the Warp checks SKIP unless the machine has it (scripts/device-warp.sh
-#   carries it in parts over warm calls).
+#   unpacks it (Python's tarfile, a few seconds) and runs the checks on cuda.
 # Here, the dry run:  DRY_RUN=cpu sh scripts/gpu-smoke.sh     the same checks on the CPU and Warp's CPU device,
 #   with this checkout's environment (PYTHON, else .venv/bin/python, else python3).
 set -e
 cd "$(dirname "$0")/.."
 DIR=.device/smoke
 DEVICE_PY="${DEVICE_PY:-3.12}"
-PACKAGES="mujoco==4.0.0 mujoco-core==4.0.0 mujoco-studio==4.0.0 glfw==2.11.0 PyOpenGL==3.1.10 hydra-core==1.3.8
-omegaconf==2.3.1 PyYAML==6.0.3 tqdm==4.70.1 psutil==7.2.2 scipy==1.17.1 dtw-python==1.9.0 matplotlib==3.11.2
-contourpy==1.3.3 cycler==0.12.1 fonttools==4.68.0 kiwisolver==1.5.1 pillow==13.0.0 pyparsing==3.3.3
-python-dateutil==2.9.0.post0 six==1.17.0"
+# Not glfw or PyOpenGL (17 MB): nothing the checks run renders (eval.video=false).
+PACKAGES="mujoco==4.0.0 mujoco-core==4.0.0 hydra-core==1.3.8 omegaconf==2.3.1 dtw-python==1.9.0 warp-lang==1.19.0
+mujoco-warp==4.0.0"
 ANTLR=antlr4-python3-runtime==4.9.3  # hydra's parser runtime: an sdist only, built into a wheel here
 
 prepare() {
@@ -41,15 +42,28 @@ from pathlib import Path
 work = Path(sys.argv[1])
 for wheel in sorted(glob.glob(f"{work}/wheels/*.whl")):
     zipfile.ZipFile(wheel).extractall(work / "site")
-for tests in [p for p in (work / "site").rglob("tests") if p.is_dir()]:
+site = work / "site"
+for tests in [p for p in site.rglob("*") if p.is_dir() and p.name in ("tests", "test_data", "testdata")]:
     shutil.rmtree(tests, ignore_errors=True)
-shutil.rmtree(work / "site" / "matplotlib" / "mpl-data" / "sample_data", ignore_errors=True)
+for test in [*site.glob("mujoco/*_test.py"), *site.glob("mujoco_warp/_src/*_test.py")]:
+    test.unlink()
+# MuJoCo's studio, viewer, docs, C headers, plugins (our character uses none), USD and system-identification tools;
+# Warp's examples, type stubs and CPU compiler (warp-clang.so: the device's Warp runs on CUDA).
+for unused in ("mujoco/studio", "mujoco/doc", "mujoco/include", "mujoco/plugin", "mujoco/usd", "mujoco/sysid",
+               "mujoco/introspect", "warp/examples"):
+    shutil.rmtree(site / unused, ignore_errors=True)
+for unused in [*site.glob("mujoco/_simulate*.so"), site / "warp/__init__.pyi", site / "warp/bin/warp-clang.so"]:
+    unused.unlink()
 EOF
+    # warp.so's SASS for GPUs other than the machine's (sm_90: H100, H200) zeroed in place (scripts/keep_cubins.py).
+    "$PY" scripts/keep_cubins.py "$work/site/warp/bin/warp.so" --keep "${KEEP_SM:-90}"
+    # The clips the checks and the Warp tests load (pybullet's wheel, which has them, is too large to carry).
+    cp -r "$("$PY" -c 'import pybullet_data; print(pybullet_data.getDataPath())')/data/motions" "$work/site/motions"
     rm -rf "$DIR" && mkdir -p "$DIR"
-    tar -C "$work/site" -cf - . | xz -T0 -9 >"$DIR/site.tar.xz"
-    cp -r "$("$PY" -c 'import pybullet_data; print(pybullet_data.getDataPath())')/data/motions" "$DIR/motions"
+    tar -C "$work/site" -cf - . | xz -T1 --x86 --lzma2=preset=9e,dict=192MiB >"$DIR/site.tar.xz"
     rm -rf "$work"
-    tree=$(git ls-files -z | xargs -0 du -cb | tail -1 | cut -f1)
+    # What travels with it: tracked files and untracked ones git does not ignore.
+    tree=$(git ls-files -z -c -o --exclude-standard | xargs -0 du -cb | tail -1 | cut -f1)
     carried=$(du -cb "$DIR" | tail -1 | cut -f1)
     echo "$DIR: $((carried / 1048576)) MiB, the tree $((tree / 1048576)) MiB; carry [\"$DIR\"]: sh scripts/gpu-smoke.sh"
     if [ $((carried + tree)) -gt $((64 * 1048576)) ]; then
@@ -64,7 +78,7 @@ run() {
         site=$(mktemp -d)
         "$PY" -c "import sys, tarfile; tarfile.open(sys.argv[1]).extractall(sys.argv[2], filter='data')" \
             "$DIR/site.tar.xz" "$site"
-        export PYTHONPATH="$site:." MOCAP_MOTION_DIR="$(pwd)/$DIR/motions"
+        export PYTHONPATH="$site:." MOCAP_MOTION_DIR="$site/motions"
     else
         echo "SKIP packages: $DIR/site.tar.xz was not carried (sh scripts/gpu-smoke.sh prepare here, then carry it)"
         export PYTHONPATH=.

@@ -4,12 +4,14 @@
     python scripts/gpu_smoke.py --device cpu       # the dry run here: the same checks on the CPU and Warp's CPU device
 
 Exit status 1 when a check fails (a SKIP is not a failure: it says what was not there to check). The checks:
-devices (the driver, torch, Warp); the VAE policy collecting on the device beside MuJoCo C; every learner's eager
-update on the device and its state dict loaded into a CPU learner, equal to the last bit; one compiled small learner;
-MuJoCo Warp on the device, its graph replayed against steps without one; `tracking_error` with a CPU controller on a
-Warp simulator on the device (a goal made there); and short local training runs of the methods that need no stage
-(`runtime=local tracking=off`, learners on the device). Warp's checks need warp-lang, whose wheel (149 MB; its
-warp.so 78 MB even xz-compressed) does not fit a 64 MiB call: they SKIP where it is not installed.
+devices (the driver, torch, Warp); a rollout worker with the VAE policy collecting on the device, beside MuJoCo Warp
+there; every learner's eager update on the device and its state dict loaded into a CPU learner, equal to the last
+bit; one compiled small learner; MuJoCo Warp on the device, its graph replayed against steps without one;
+`tracking_error` with a CPU controller on a Warp simulator on the device (a goal made there); and short local training
+runs of the methods that need no stage (`runtime=local tracking=off`, learners and MuJoCo Warp on the device; in the
+dry run MuJoCo C, as Warp's CPU device would take minutes). The methods built on stages (PhysicsVAE, PULSE, the task
+policies) read them from MLflow, which does not fit in the call beside Warp. Where warp-lang is not installed, the
+checks that need it SKIP, and the rollout and training run beside MuJoCo C.
 """
 
 from __future__ import annotations
@@ -79,20 +81,18 @@ def character_and_clip():
 def rollout(device: str) -> str:
     from workers.learners.vae import VAEConfig
     from workers.policies import VAEPolicy
-    from workers.sim.env import make_sim
+    from workers.rollout import RolloutWorker
+    from workers.sim.env import SimConfig
 
     character, library = character_and_clip()
-    sim = make_sim(character, library, 8, seed=0)
+    sim = SimConfig(backend="warp", device=device) if has_warp() else SimConfig()
     policy = VAEPolicy(character.num_bodies, character.num_actions, VAEConfig(latent_dim=16)).to(device)
-    policy.bind(8, np.random.default_rng(0), torch.Generator().manual_seed(0))
-    steps = 0
-    for _ in range(30):
-        actions, _ = policy.act(sim, sim.body_states())
-        sim.step(actions)
-        steps += 1
-    if not np.isfinite(sim.body_states()).all():
-        raise RuntimeError("the simulated states went non-finite")
-    return f"{steps} control steps of 8 environments, the policy on {policy.device}"
+    worker = RolloutWorker(character, library, 8, policy, sim_config=sim, seed=0)
+    trajectory = worker.collect(30)
+    if not np.isfinite(trajectory.next_states).all():
+        raise RuntimeError("the collected states went non-finite")
+    engine = f"MuJoCo Warp on {device}" if has_warp() else "MuJoCo C (no warp-lang)"
+    return f"{trajectory.actions.shape[0]} steps of 8 environments, the policy on {policy.device}, {engine}"
 
 
 def learners(device: str) -> str:
@@ -130,7 +130,7 @@ def compiled(device: str) -> str:
 
 def warp_graph(device: str) -> str:
     if not has_warp():
-        raise Skip("warp-lang is not installed (its wheel does not fit a 64 MiB call)")
+        raise Skip("warp-lang is not installed (carry .device/smoke)")
     test = ROOT / "tests" / "unit" / "test_warp_physics.py"
     env = {**os.environ, "MOCAP_WARP_DEVICE": device, "PYTHONPATH": os.pathsep.join([*sys.path, str(ROOT)])}
     proc = subprocess.run(
@@ -145,7 +145,7 @@ def warp_graph(device: str) -> str:
 
 def tracking_on_warp(device: str) -> str:
     if not has_warp():
-        raise Skip("warp-lang is not installed (its wheel does not fit a 64 MiB call)")
+        raise Skip("warp-lang is not installed (carry .device/smoke)")
     from workers.evaluation.controller import tracking_error
     from workers.learners.vae import VAEConfig, build_controller
     from workers.sim.base import SimConfig
@@ -161,19 +161,22 @@ def training(device: str) -> str:
     if importlib_missing("hydra", "omegaconf"):
         raise Skip("hydra-core or omegaconf is not installed (carry .device/smoke)")
     done = []
+    on_warp = device.startswith("cuda") and has_warp()
+    engine = ["sim.backend=warp", f"sim.device={device}"] if on_warp else []
     with tempfile.TemporaryDirectory() as tmp:
         for algo in ("controlvae", "tracker", "amp"):
             command = [
                 sys.executable, "-m", "orchestrator", f"algo={algo}", "scale=smoke", "motion=walk", "runtime=local",
                 "tracking=off", "progress=false", "eval.video=false", "algo.loop.iterations=2",
-                f"runtime.learner_device={device}", f"run_dir={Path(tmp) / algo}",
+                f"runtime.learner_device={device}", f"run_dir={Path(tmp) / algo}", *engine,
             ]  # fmt: skip
             t0 = time.perf_counter()
             proc = subprocess.run(command, capture_output=True, text=True, cwd=ROOT)
             if proc.returncode != 0:
                 raise RuntimeError(f"{algo}: exit {proc.returncode}: {proc.stderr.strip()[-1500:]}")
             done.append(f"{algo} {time.perf_counter() - t0:.0f} s")
-    return "2 iterations each, learners on the device, MuJoCo C: " + ", ".join(done)
+    where = f"MuJoCo Warp on {device}" if on_warp else "MuJoCo C"
+    return f"2 iterations each, learners on the device, {where}: " + ", ".join(done)
 
 
 def importlib_missing(*names: str) -> bool:
