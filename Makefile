@@ -49,7 +49,7 @@ device-wheels:
 		--platform manylinux_2_28_x86_64 --platform manylinux2014_x86_64 -d .device/wheels \
 		mujoco==4.0.0 mujoco-core==4.0.0 mujoco-studio==4.0.0 glfw==2.11.0 pyopengl==3.1.10
 
-# The MuJoCo Warp check's wheels, warp-lang in parts of at most 58 MiB (docs/warp.md, "On a GPU").
+# The MuJoCo Warp checks' packages: the GPU smoke's (.device/smoke; docs/warp.md, "On a GPU").
 device-warp:
 	PYTHON=$(BIN)/python sh scripts/device-warp.sh prepare
 
