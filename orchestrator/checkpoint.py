@@ -27,6 +27,7 @@ import tempfile
 import warnings
 import zipfile
 from collections.abc import Callable
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TextIO
 
@@ -56,6 +57,17 @@ class CheckpointError(ValueError):
 
 # What a disk that filled up or became read-only under a run raises (the quota's too).
 DISK_ERRORS = (errno.ENOSPC, errno.EDQUOT, errno.EROFS)
+
+
+@dataclass
+class LoopState:
+    """The loop's counters, which a checkpoint saves under "loop" and restores (the method's own are in its state
+    dict)."""
+
+    iteration: int = 0
+    samples: int = 0  # environment transitions collected (the metrics' step)
+    # The untrained policy's evaluation (`eval.at_start`): the closing summary's baseline.
+    baseline: dict[str, float] = field(default_factory=dict)
 
 
 class DiskError(RuntimeError):

@@ -43,7 +43,6 @@ from orchestrator.runtime.base import uses_ray, worker_gpus
 from orchestrator.schema import Config, ConfigError
 from orchestrator.tracking.identity import UNKNOWN, auth_header, experiment_access, server_url, whoami
 from orchestrator.tracking.uri import redact, store_uri, tracking_uri_error
-from orchestrator.trainer import LoopState
 from orchestrator.world import load_character, load_library
 from workers.body.character import Character, CharacterError
 from workers.motion.errors import ClipError
@@ -329,7 +328,7 @@ def resume_checkpoint(cfg: Config, character: Character, log: Callable[[str], No
             if method.needs:  # its components fit or not once the trainer restores them
                 return path
             try:
-                LoopState(**state["loop"])
+                checkpoint.LoopState(**state["loop"])
             except TypeError as e:
                 raise checkpoint.CheckpointError(path, f"loop: {e}") from None
             if targets is None:  # built as the trainer builds them, without touching torch's threads or RNG

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, replace
 from pathlib import Path
 from typing import Any
 
@@ -41,16 +41,6 @@ from workers.learners.base import Weights
 log = logging.getLogger(__name__)
 
 
-@dataclass
-class LoopState:
-    """Counters that a checkpoint restores (the method's own are in its state dict)."""
-
-    iteration: int = 0
-    samples: int = 0  # environment transitions collected (the metrics' step)
-    # The untrained policy's evaluation (`eval.at_start`): the closing summary's baseline.
-    baseline: dict[str, float] = field(default_factory=dict)
-
-
 class Trainer:
     def __init__(
         self,
@@ -64,7 +54,7 @@ class Trainer:
         self.runtime = runtime
         self.logger = logger
         self.character = character
-        self.state = LoopState()
+        self.state = checkpoint.LoopState()
         self.ckpt_dir = Path(cfg.run_dir) / "checkpoints"
         self.method: Method = method_class(cfg.algo._target_)(cfg, character, upstream)
         r = cfg.runtime
@@ -301,7 +291,7 @@ class Trainer:
         state.update(replay)
         rt = self.runtime
         try:
-            loop = LoopState(**state["loop"])
+            loop = checkpoint.LoopState(**state["loop"])
             self.method.load_state_dict(state["method"])
             rt.get([rt.call(h, "load_state_dict", state[key]) for key, h in self.handles.items() if key in state])
             for w, ws in zip(self.workers, state["workers"], strict=True):

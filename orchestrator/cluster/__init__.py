@@ -1,5 +1,6 @@
 """The cluster topology on one machine, without Docker (`python -m orchestrator.cluster up|down|status|env`): the
 command line (`__main__`), the cluster's lifecycle and its record (`topology`), each service started and stopped
-(`services`), MLflow's basic-auth app and the lab's user (`mlflow_auth`), the private directories and secret files
-of the state dir (`files`), and the processes under them, each in its own session (`procs`).
+(`services`), and the processes under them, each in its own session (`procs`). MLflow's basic-auth app and the
+private directories and secret files live in `orchestrator.tracking` (`mlflow_auth`, `secret_files`), which the
+tracking server of a parallel sweep uses too.
 """

@@ -16,8 +16,6 @@ import shlex
 import sys
 from pathlib import Path
 
-from orchestrator.cluster.files import private_dir
-from orchestrator.cluster.procs import ClusterError
 from orchestrator.cluster.topology import (
     DEFAULT_STATE_DIR,
     client_env,
@@ -29,6 +27,8 @@ from orchestrator.cluster.topology import (
     status,
     up,
 )
+from orchestrator.errors import ServiceError
+from orchestrator.tracking.secret_files import private_dir
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -63,12 +63,12 @@ def main(argv: list[str] | None = None) -> int:
         else:
             state = load_state(state_dir)
             if state is None:
-                raise ClusterError(f"no cluster recorded in {state_path(state_dir)}; run `up`")
+                raise ServiceError(f"no cluster recorded in {state_path(state_dir)}; run `up`")
             for key, value in client_env(state).items():
                 print(f"export {key}={shlex.quote(value)}")
             for key, path in client_secret_files(state).items():  # read by the shell that evals this, not printed
                 print(f'export {key}="$(cat {shlex.quote(path)})"')
-    except ClusterError as e:
+    except ServiceError as e:
         print(f"cluster {args.command}: {e}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:

@@ -23,9 +23,7 @@ from typing import Any
 
 import psutil
 
-
-class ClusterError(RuntimeError):
-    """A service did not come up or could not be stopped; the message is one line naming it and its log."""
+from orchestrator.errors import ServiceError
 
 
 def free_port(host: str = "127.0.0.1") -> int:
@@ -137,7 +135,7 @@ def wait_until(
     record: dict[str, Any] | None = None,
     retry_on: tuple[type[BaseException], ...] = (),
 ) -> None:
-    """Poll `check` until it is true; raise a one-line ClusterError naming `what` and `log` when the recorded
+    """Poll `check` until it is true; raise a one-line ServiceError naming `what` and `log` when the recorded
     process exits or `timeout_s` passes. Connection errors (and `retry_on`) raised by `check` count as 'not yet'."""
     deadline = time.monotonic() + timeout_s
     while True:
@@ -147,7 +145,7 @@ def wait_until(
         except (OSError, urllib.error.URLError, ValueError, ConnectionError, *retry_on):
             pass
         if record is not None and not alive(record):
-            raise ClusterError(f"{what} exited during start-up; see its log {log}")
+            raise ServiceError(f"{what} exited during start-up; see its log {log}")
         if time.monotonic() > deadline:
-            raise ClusterError(f"{what} did not come up within {timeout_s:.0f} s; see its log {log}")
+            raise ServiceError(f"{what} did not come up within {timeout_s:.0f} s; see its log {log}")
         time.sleep(0.5)

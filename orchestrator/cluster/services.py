@@ -17,10 +17,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from orchestrator.cluster import mlflow_auth
-from orchestrator.cluster.files import kept_dir, new_password, private_dir, read_secret, write_secret
 from orchestrator.cluster.procs import (
-    ClusterError,
+    ServiceError,
     free_ports,
     http_json,
     http_ok,
@@ -28,6 +26,8 @@ from orchestrator.cluster.procs import (
     stop_session,
     wait_until,
 )
+from orchestrator.tracking import mlflow_auth
+from orchestrator.tracking.secret_files import kept_dir, new_password, private_dir, read_secret, write_secret
 
 HOST = "127.0.0.1"
 PG_USER = "mlflow"  # the database role, and the database is `mlflow`
@@ -150,7 +150,7 @@ def pg_bindir() -> Path:
     for c in candidates:
         if c and (Path(c) / "initdb").exists() and (Path(c) / "pg_ctl").exists():
             return Path(c)
-    raise ClusterError("PostgreSQL server not found (initdb, pg_ctl): run `make system-packages` or set PG_BIN")
+    raise ServiceError("PostgreSQL server not found (initdb, pg_ctl): run `make system-packages` or set PG_BIN")
 
 
 def _as_pg_owner(command: list[str]) -> list[str]:
@@ -166,12 +166,12 @@ def _run(command: list[str], what: str, log: Path, timeout_s: float) -> None:
     try:
         proc = subprocess.run(command, capture_output=True, text=True, timeout=timeout_s, stdin=subprocess.DEVNULL)
     except subprocess.TimeoutExpired as e:
-        raise ClusterError(f"{what} did not finish within {timeout_s:.0f} s; see its log {log}") from e
+        raise ServiceError(f"{what} did not finish within {timeout_s:.0f} s; see its log {log}") from e
     if proc.returncode != 0:
         with open(log, "a") as f:
             f.write(proc.stdout + proc.stderr)
         last = (proc.stderr or proc.stdout).strip().splitlines()[-1:] or ["no output"]
-        raise ClusterError(f"{what} failed ({last[0]}); see its log {log}")
+        raise ServiceError(f"{what} failed ({last[0]}); see its log {log}")
 
 
 def pg_home(state_dir: Path) -> tuple[Path, bool]:

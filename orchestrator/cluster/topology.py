@@ -6,7 +6,7 @@
   with its own logical CPUs, its own ports and a Ray temp dir of its own (no clash with other Rays here);
 - PostgreSQL (initdb once into the state dir, pg_ctl on 127.0.0.1 at a free port) with a database `mlflow`;
 - `mlflow server --app-name basic-auth` on that database, artifacts proxied into `<state-dir>/artifacts` (clients
-  log to `mlflow-artifacts:` through the server); every request needs a user (`orchestrator.cluster.mlflow_auth`),
+  log to `mlflow-artifacts:` through the server); every request needs a user (`orchestrator.tracking.mlflow_auth`),
   and jobs log as the lab's user, whose credentials the Ray nodes pass to every job.
 The addresses go to stdout and to `<state-dir>/cluster.json`; logs to `<state-dir>/logs/`; the state dir is 0700
 and each password and token in it 0600. `down` stops only what `up` recorded there (never `ray stop`, which would
@@ -24,8 +24,9 @@ from pathlib import Path
 from typing import Any
 
 from orchestrator.cluster import services as svc
-from orchestrator.cluster.files import private_dir, write_secret
-from orchestrator.cluster.procs import ClusterError, alive, http_ok
+from orchestrator.cluster.procs import alive, http_ok
+from orchestrator.errors import ServiceError
+from orchestrator.tracking.secret_files import private_dir, write_secret
 
 STATE_FILE = "cluster.json"
 DEFAULT_STATE_DIR = ".cluster"
@@ -123,7 +124,7 @@ def running(state: dict[str, Any]) -> bool:
 def up(state_dir: Path, head_cpus: int, node_cpus: int, nodes: int, store_mb: int, timeout_s: float) -> dict:
     previous = load_state(state_dir)
     if previous is not None and running(previous):
-        raise ClusterError(f"a cluster is already up from {state_path(state_dir)}; run `down` first")
+        raise ServiceError(f"a cluster is already up from {state_path(state_dir)}; run `down` first")
     if previous is not None:  # a stale record (processes gone, e.g. after a reboot): clear what it left
         down(state_dir, quiet=True)
     private_dir(state_dir)
@@ -191,7 +192,7 @@ def down(state_dir: Path, quiet: bool = False) -> bool:
             if not quiet and (Path(pg["data_dir"]) / "postmaster.pid").exists():
                 print(f"stopping PostgreSQL ({pg['data_dir']})")
             svc.stop_postgres(pg, state_dir / "logs")
-    except ClusterError as e:
+    except ServiceError as e:
         errors.append(str(e))
     if not quiet:
         for what, where in (
@@ -202,7 +203,7 @@ def down(state_dir: Path, quiet: bool = False) -> bool:
                 print(f"kept the {what} in {where}")
     state_path(state_dir).unlink(missing_ok=True)
     if errors:
-        raise ClusterError("; ".join(errors))
+        raise ServiceError("; ".join(errors))
     return True
 
 
@@ -210,7 +211,7 @@ def status(state_dir: Path) -> dict[str, Any]:
     """Each service's state: up (its process runs and it answers) or down."""
     state = load_state(state_dir)
     if state is None:
-        raise ClusterError(f"no cluster recorded in {state_path(state_dir)}; run `up`")
+        raise ServiceError(f"no cluster recorded in {state_path(state_dir)}; run `up`")
     token = Path(state["ray"]["auth_token_path"]).read_text()
     services = {}
     head = state["ray"].get("head")

@@ -34,8 +34,8 @@ from typing import Any
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig
 
-from orchestrator.cluster.files import write_secret
 from orchestrator.sweep import amp, physicsvae, report, tasks
+from orchestrator.tracking.secret_files import write_secret
 from orchestrator.tracking.uri import hide, redact, scrub, scrub_file, store_uri
 
 SWEEP_FILE = "sweep.json"

@@ -139,8 +139,8 @@ def start_local_server(
     env.setdefault("MLFLOW_SERVER_ENABLE_JOB_EXECUTION", "false")
     private, credentials = None, {}
     if auth:
-        from orchestrator.cluster import mlflow_auth
-        from orchestrator.cluster.files import new_password
+        from orchestrator.tracking import mlflow_auth
+        from orchestrator.tracking.secret_files import new_password
 
         mlflow_auth.require_auth_app()
         private = Path(tempfile.mkdtemp(prefix="mlflow-auth-"))  # 0700

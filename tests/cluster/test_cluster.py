@@ -32,8 +32,8 @@ from typing import Any
 import pytest
 import torch
 
-from orchestrator.cluster import mlflow_auth
 from orchestrator.cluster.procs import http_json, session_members
+from orchestrator.tracking import mlflow_auth
 
 pytestmark = [pytest.mark.cluster, pytest.mark.slow]
 

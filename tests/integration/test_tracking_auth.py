@@ -12,9 +12,9 @@ import pytest
 from test_bad_input import assert_refused, run_main  # beside this file (pytest puts its folder on sys.path)
 
 from orchestrator import preflight
-from orchestrator.cluster import mlflow_auth
 from orchestrator.cluster.procs import free_port, http_ok, start_session, stop_session
 from orchestrator.preflight import InputError
+from orchestrator.tracking import mlflow_auth
 
 pytestmark = pytest.mark.slow
 PASSWORD = "an-admin-password-for-this-test"

@@ -14,11 +14,10 @@ from mlflow.tracking import MlflowClient
 from test_bad_input import assert_refused, run_main  # beside this file (pytest puts its folder on sys.path)
 
 from orchestrator import preflight, stages
-from orchestrator.cluster import mlflow_auth
 from orchestrator.compose import compose, validate
 from orchestrator.preflight import InputError
 from orchestrator.sweep.callback import refuse_unwritable
-from orchestrator.tracking import manifest
+from orchestrator.tracking import manifest, mlflow_auth
 from orchestrator.tracking.server import start_local_server
 
 USERS = {"alice": "alice-password-for-this-test", "bob": "bob-password-for-this-test"}

@@ -9,8 +9,8 @@ import subprocess
 import sys
 from pathlib import Path
 
-from orchestrator.cluster.files import kept_dir, private_dir, write_secret
 from orchestrator.cluster.topology import down, save_state, state_path
+from orchestrator.tracking.secret_files import kept_dir, private_dir, write_secret
 
 ROOT = Path(__file__).resolve().parents[2]
 

@@ -12,9 +12,9 @@ from pathlib import Path
 
 import pytest
 
-from orchestrator.cluster import mlflow_auth
 from orchestrator.cluster import services as svc
-from orchestrator.cluster.files import kept_dir, private_dir, read_secret, write_secret
+from orchestrator.tracking import mlflow_auth
+from orchestrator.tracking.secret_files import kept_dir, private_dir, read_secret, write_secret
 
 
 def mode(path: Path) -> int:

@@ -105,7 +105,7 @@ def test_mlflow_runs_the_basic_auth_app_with_read_for_all_and_no_password_in_its
 def test_jobs_log_as_the_lab_user_that_mlflow_user_creates_before_ray_starts(compose):
     services = compose["services"]
     user = services["mlflow-user"]
-    assert user["command"][:3] == ["python", "-m", "orchestrator.cluster.mlflow_auth"]
+    assert user["command"][:3] == ["python", "-m", "orchestrator.tracking.mlflow_auth"]
     assert user["depends_on"]["mlflow"]["condition"] == "service_healthy"
     assert services["ray-head"]["depends_on"]["mlflow-user"]["condition"] == "service_completed_successfully"
     for name in ("ray-head", "ray-worker", "mlflow-user"):

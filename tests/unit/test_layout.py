@@ -170,3 +170,15 @@ def test_no_private_name_is_imported_from_another_module():
             if isinstance(node, ast.ImportFrom) and (node.module or "").split(".")[0] in PACKAGES:
                 offenders += [f"{name}: {node.module}.{a.name}" for a in node.names if a.name.startswith("_")]
     assert offenders == []
+
+
+def test_helpers_live_below_the_commands_that_use_them():
+    """Secret files and MLflow's auth app are tracking's (the cluster command and a sweep's server both use them), and
+    the loop's counters are the checkpoint's: neither tracking nor the sweep imports the cluster command, and
+    preflight does not import the trainer."""
+    graph = import_graph()
+    below = {m: sorted(t for t in ts if room_of(t) == "orchestrator.cluster") for m, ts in graph.items()}
+    assert {
+        m: ts for m, ts in below.items() if room_of(m) in ("orchestrator.tracking", "orchestrator.sweep") and ts
+    } == {}
+    assert "orchestrator.trainer" not in graph["orchestrator.preflight"]

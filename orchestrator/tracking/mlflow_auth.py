@@ -1,4 +1,5 @@
-"""MLflow's basic-auth app for the cluster's tracking server: its config, its secrets and the lab's user.
+"""MLflow's basic-auth app for a tracking server (the cluster's, a parallel sweep's): its config, its secrets and the
+lab's user.
 
 `mlflow server --app-name basic-auth` answers 401 to any request without a valid user and password (only
 `/health` and static files are open). Its users live in a database of their own (`mlflow_auth`, beside the
@@ -11,7 +12,7 @@ Jobs log as the lab's user (`lab`, a non-admin), with `MLFLOW_TRACKING_USERNAME`
 in their environment; the tracking URI carries no credentials. `ensure_user` creates that user, or sets its
 password to the one given, through the admin's REST API.
 
-    python -m orchestrator.cluster.mlflow_auth http://mlflow:5000   # the same, for docker/compose.yaml
+    python -m orchestrator.tracking.mlflow_auth http://mlflow:5000   # the same, for docker/compose.yaml
         # env: MLFLOW_AUTH_ADMIN_PASSWORD, MLFLOW_TRACKING_USERNAME, MLFLOW_TRACKING_PASSWORD
 """
 
@@ -30,8 +31,8 @@ import urllib.parse
 import urllib.request
 from pathlib import Path
 
-from orchestrator.cluster.files import write_secret
-from orchestrator.cluster.procs import ClusterError
+from orchestrator.errors import ServiceError
+from orchestrator.tracking.secret_files import write_secret
 
 ADMIN_USER = "admin"  # MLflow's default admin name; its password is ours
 LAB_USER = "lab"  # the user jobs log as
@@ -47,7 +48,7 @@ AUTH_CACHE_S = 60
 def require_auth_app() -> None:
     """MLflow's auth app imports Flask-WTF (the `mlflow[auth]` extra): a one-line error when it is missing."""
     if importlib.util.find_spec("flask_wtf") is None:
-        raise ClusterError(
+        raise ServiceError(
             "MLflow's basic-auth app needs Flask-WTF: pip install -c constraints.txt -e . (mlflow[auth])"
         )
 
@@ -97,7 +98,7 @@ def ensure_user(uri: str, admin_password: str, username: str, password: str, adm
     status, _ = _call(uri, "GET", f"/api/2.0/mlflow/users/get?{urllib.parse.urlencode({'username': username})}", admin)
     if status == 401:
         where = f" in {admin_file}" if admin_file else ""
-        raise ClusterError(
+        raise ServiceError(
             f"MLflow server {uri} refuses the admin password{where}: its user database keeps the admin's first "
             "password (change it with the update-password API, or drop the mlflow_auth database)"
         )
@@ -109,7 +110,7 @@ def ensure_user(uri: str, admin_password: str, username: str, password: str, adm
             uri, "POST", "/api/2.0/mlflow/users/create", admin, {"username": username, "password": password}
         )
     if status != 200:
-        raise ClusterError(f"MLflow server {uri}: setting up user {username!r} failed ({status} {text[:200]})")
+        raise ServiceError(f"MLflow server {uri}: setting up user {username!r} failed ({status} {text[:200]})")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -125,7 +126,7 @@ def main(argv: list[str] | None = None) -> int:
     username = os.environ.get("MLFLOW_TRACKING_USERNAME") or LAB_USER
     try:
         ensure_user(uri, os.environ["MLFLOW_AUTH_ADMIN_PASSWORD"], username, os.environ["MLFLOW_TRACKING_PASSWORD"])
-    except (ClusterError, OSError) as e:
+    except (ServiceError, OSError) as e:
         print(f"mlflow_auth: {e}", file=sys.stderr)
         return 1
     print(f"MLflow user {username!r} ready on {uri}")

@@ -1,5 +1,5 @@
-"""The cluster's files on disk: private directories (0700), secret files (0600), and directories kept outside the
-state dir, whose place the state dir remembers.
+"""Secrets on disk, for the cluster's state dir and a sweep's tracking server: private directories (0700), secret
+files (0600), and directories kept outside the state dir, whose place the state dir remembers.
 
 Modes are set whether the file or directory is new or was already there (an older state dir, a copy, a umask of
 022): creating with a mode changes nothing on an existing path, so every helper here also chmods.
