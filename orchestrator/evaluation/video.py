@@ -218,17 +218,6 @@ class RenderJob:
         self.close()
 
 
-def write_videos(
-    recordings: list[Recording], out_dir: Path, fps: float, width: int, height: int, run: str | None = None
-) -> list[Path]:
-    """`RenderJob` in the foreground: out_dir/<name>.mp4 for every recording ([] without GL, one warning per run)."""
-    with RenderJob(recordings, fps, width, height, run) as job:
-        paths = job.wait()
-        if paths:
-            out_dir.mkdir(parents=True, exist_ok=True)
-        return [Path(shutil.move(p, out_dir / p.name)) for p in paths]
-
-
 def _warn(run: str | None) -> None:
     if run in _GL.warned:
         return

@@ -18,9 +18,9 @@ import time
 
 import numpy as np
 import torch
+from toy import PendulumConfig, PendulumTarget, mean_episode_return  # beside this file
 
 from workers.learners.ppo import PPOConfig, PPOLearner, Rollout
-from workers.sim.toy import PendulumConfig, PendulumTarget, mean_episode_return
 
 CONFIG = PPOConfig(
     policy_hidden=(64, 64),

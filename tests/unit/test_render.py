@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import shutil
 from pathlib import Path
 
 import imageio.v3 as iio
@@ -34,6 +35,15 @@ from workers.learners.vae import VAEConfig, build_controller
 SMALL = VAEConfig(latent_dim=8, encoder_hidden=(32,), policy="mlp", policy_hidden=(64,))
 HZ = 30
 W, H = 240, 160  # not the default size, so that the size is seen to come from the arguments
+
+
+def write_videos(recordings, out_dir: Path, fps: float, width: int, height: int, run: str | None = None) -> list[Path]:
+    """`video.RenderJob` in the foreground: out_dir/<name>.mp4 for every recording ([] without GL)."""
+    with video.RenderJob(recordings, fps, width, height, run) as job:
+        paths = job.wait()
+        if paths:
+            out_dir.mkdir(parents=True, exist_ok=True)
+        return [Path(shutil.move(p, out_dir / p.name)) for p in paths]
 
 
 def small_controller(character):
@@ -140,7 +150,7 @@ def videos(character, walk_run, tmp_path_factory):
         Recording("ghost-hidden", walk, hidden(walk), m),
     ]
     out = tmp_path_factory.mktemp("videos")
-    paths = video.write_videos(recordings, out, HZ, W, H, run="test")
+    paths = write_videos(recordings, out, HZ, W, H, run="test")
     assert paths == [out / f"{r.name}.mp4" for r in recordings], video._GL.failure
     return {p.stem: iio.imread(p).astype(int) for p in paths}
 
@@ -175,7 +185,7 @@ def test_gl_backends_fall_back_to_the_next_one(fresh_gl, monkeypatch, tmp_path, 
     monkeypatch.setattr(video, "HEADLESS_BACKENDS", ("no-such-backend", "egl"))
     rec = Recording("x", np.tile(character.model.qpos0, (3, 1)), None, character.model)
     with caplog.at_level(logging.WARNING, logger="orchestrator.evaluation.video"):
-        assert video.write_videos([rec], tmp_path, HZ, W, H) == [tmp_path / "x.mp4"]
+        assert write_videos([rec], tmp_path, HZ, W, H) == [tmp_path / "x.mp4"]
     assert len(iio.imread(tmp_path / "x.mp4")) == 3
     assert not caplog.records  # a fallback that works is not worth a warning
     # The backend that worked is the only one tried from then on, whatever MUJOCO_GL says.
@@ -235,7 +245,7 @@ def test_broken_gl_warns_once_and_the_evaluation_goes_on(fresh_gl, monkeypatch, 
             metrics = evaluate_controller(cfg, character, walk_run, weights_of(character), tracker, iteration, False)
             assert np.isfinite(metrics["eval/time_until_fall_mean"])
         rec = Recording("x", np.zeros((2, character.model.nq)), None, character.model)
-        assert video.write_videos([rec], Path("unused"), 30, W, H, run="test-run") == []
+        assert write_videos([rec], Path("unused"), 30, W, H, run="test-run") == []
     warnings = [r for r in caplog.records if r.name == "orchestrator.evaluation.video"]
     assert len(warnings) == 1
     assert "MUJOCO_GL=no-such-backend" in warnings[0].getMessage() and "invalid value" in warnings[0].getMessage()

@@ -91,16 +91,6 @@ def to_6d(m: np.ndarray) -> np.ndarray:
     return np.concatenate((m[..., :, 0], m[..., :, 1]), axis=-1)
 
 
-def from_6d(d6: np.ndarray) -> np.ndarray:
-    """Rotation matrices [..., 3, 3] from 6D [..., 6] by Gram-Schmidt (inverse of to_6d)."""
-    a, b = d6[..., :3], d6[..., 3:]
-    c0 = a / np.linalg.norm(a, axis=-1, keepdims=True)
-    b = b - np.sum(c0 * b, axis=-1, keepdims=True) * c0
-    c1 = b / np.linalg.norm(b, axis=-1, keepdims=True)
-    c2 = np.cross(c0, c1)
-    return np.stack((c0, c1, c2), axis=-1)
-
-
 def from_expmap(v: np.ndarray) -> np.ndarray:
     """Unit quaternions [..., 4] from rotation vectors (axis * angle) [..., 3]."""
     angle = np.linalg.norm(v, axis=-1, keepdims=True)
