@@ -2,7 +2,7 @@
 
 One worker serves every method: it steps the batched simulator with the
 `Policy` it is given (`workers.policies`: the VAE controller, the PPO
-actor-critic, later the task policy) and records, per control step and
+actor-critic, the experts, the task policies) and records, per control step and
 environment, the body states before and after, the actions, the episode ends
 with their cause, and what the policy and the recorders add:
 

@@ -1,4 +1,4 @@
-"""What the PPO methods share (AMP, the tracking expert, later the task policy): the on-policy iteration.
+"""What the PPO methods share (AMP, the tracking expert, the task policy trained by PPO): the on-policy iteration.
 
 Components: the PPO learner (`learner-ppo`) and whatever the method adds (AMP's
 discriminator). Rollout workers run the actor-critic (`GaussianPolicy`) on the

@@ -59,7 +59,7 @@ def compiled(learner: Learner, cfg: Any) -> Learner:
 
 
 class LearnerActor:
-    """What both learner actors share: weights, checkpoints, and the report every `train` returns."""
+    """What every method's learner actors share: weights, checkpoints, and the report every `train` returns."""
 
     learner: Learner
 

@@ -1,69 +1,23 @@
-"""The batched simulator on MuJoCo C: N environments of the humanoid stepped together.
+"""The batched simulator on MuJoCo C: N environments of the humanoid stepped together (`BatchedSim`, `make_sim`).
 
-A control step applies the PD targets [N, 28] and advances every environment by
-K = sim_hz / control_hz physics steps; positions, rotations and velocities of
-all bodies of all environments are then read as arrays, from which the state
-features are computed in bulk.
+A control step applies the PD targets [N, A] and advances every environment by K = sim_hz / control_hz physics
+steps in one `mujoco.batch.Batch` (persistent: one MjData per environment), in C with the GIL released, on
+`SimConfig.threads` threads: per environment `mj_step2` (the step whose position and velocity stages are already
+computed), `mj_step` for the other substeps, then the position and velocity stages of the new state, so that its
+bodies, velocities and contacts are known without a separate `mj_forward`. Bodies of every environment are read as
+(N, ...) arrays, and the state features computed in bulk.
 
-Physics: one `mujoco.batch.Batch` (MuJoCo >= 3.17) holds the N environments,
-each as its row of integration state (time, qpos, qvel, controls, the solver's
-warm start, warning counters), and steps them in C with the GIL released, on
-`SimConfig.threads` threads (default 1: the calling thread only). Per
-environment a control step is `mj_step2` (finish the step whose position and
-velocity stages are already computed, now with the new controls), `mj_step` for
-the remaining substeps, then the position and velocity stages at the new state,
-as `mj_step1` computes them, so that body positions, velocities and contacts of
-the new state are known: exactly K physics steps, with no separate
-`mj_forward`. The batch is *persistent* (one MjData per environment), which is
-what lets the next step continue with `mj_step2` from those stages instead of
-recomputing them (a non-persistent batch, one MjData reused for all, keeps the
-physics in cache but recomputes them: 1.5% faster at 480/30 Hz, 7% slower at
-120/30 Hz). The results are bit-identical to calling `mj_step2`,
-`mj_step(nstep=K-1)` and `mj_step1` on one MjData per environment, which is what
-this module did before: compared over random-policy runs at 480, 240 and 120 Hz
-with resets, falls, MuJoCo's resets after bad accelerations, self-collision and
-two threads, every state, feature and termination flag was equal.
+Falls are judged on the new state's contacts: one that involves a geom other than the floor and the allowed ones
+(the feet by default). A vectorised test first rules out the environments where no fall geom can touch a plane
+floor; only the others are decided on MuJoCo's own contact list, so the outcome is that of checking every list.
+With self-collision, contact pairs or a floor that is not a plane (rough terrain's height field,
+`workers.sim.terrain`) every environment with contacts is checked on its list.
 
-Why the batch: the Python loop over environments cost ~5 µs per environment
-and control step (three calls, six array copies, the contact list), ~1.5% of a
-control step at 480/30 Hz but ~6% at 120/30 Hz; the batch copies the body
-quantities of every environment into (N, ...) arrays in C after each call
-(`bind`), so nothing per environment runs in Python any more. What remains per
-control step (state features, reference lookups, the fall test, resets) is
-NumPy over the whole batch.
-
-Falls are judged on the contacts of the new state, as before: a contact that
-involves any geom but the floor and the allowed ones. The contact list lives in
-MjData's arena, which the batch cannot export as an array, and copying a whole
-MjData out (`Batch.get_data`, ~5 µs) for every environment would cost more than
-the loop did. So a vectorised test first rules out the environments where no fall
-geom can touch the floor: for a plane floor, a sphere, capsule or box cannot
-be in contact with it while its lowest point along the floor normal is above
-the contact margin (other shapes: their bounding sphere), and 1 cm of slack
-covers rounding. Only the remaining environments, those with a fall geom within
-about a centimetre of the floor, are copied out and decided on MuJoCo's own
-contact list, so the outcome is exactly that of checking every contact list
-(random-policy runs: 2-8% more environments copied out than falls found).
-When a fall geom could touch anything but the floor (self-collision, explicit
-contact pairs, a floor that is not a plane), every environment with contacts is
-checked on its contact list. That is the test on rough terrain, whose floor is a
-height field (`workers.sim.terrain`); the ground there is the field and the
-plane beyond it, both allowed like the floor.
-
-What does not depend on the physics (resets to reference states, the reference
-bookkeeping, tracking failure, clip ends, time limits, the step's result, saving and
-restoring) is `workers.sim.base.Simulator`'s, shared with the MuJoCo Warp backend
-(`workers.sim.warp_sim.WarpSim`); `make_sim` builds the backend a `SimConfig` names.
-`SimConfig`, `StepResult` and `without_tracking_termination` live there too and are
-importable from here.
-
-Reset is reference state initialisation from the motion library; on rough
-terrain each reset character is raised just clear of the bumps under it
-(`terrain.reset_lift`). Termination:
-`fell` (a body other than the allowed ones, the feet by default, touches the
-ground; reported but no end with `end_on_fall=False`), `tracking_failed` (head
-further than `tracking_error_m` from the reference's for `tracking_error_s`), `clip_ended` (a one-shot clip ran out) and
-`timeout` (`max_episode_steps`). The caller resets finished environments.
+What does not depend on the physics (resets to reference states, the reference bookkeeping, tracking failure,
+clip ends, time limits, the step's result, saving and restoring) is `workers.sim.base.Simulator`'s, shared with
+MuJoCo Warp (`workers.sim.warp_sim.WarpSim`); `SimConfig`, `StepResult` and `without_tracking_termination` live
+there and are importable from here. Why the batch, what it was measured against, and the fall test's details:
+docs/simulator.md.
 """
 
 from __future__ import annotations
