@@ -46,7 +46,7 @@ from orchestrator.tracking.uri import redact, store_uri, tracking_uri_error
 from orchestrator.world import load_character, load_library
 from workers.body.character import Character, CharacterError
 from workers.motion.errors import ClipError
-from workers.replay import ReplayBuffer
+from workers.replay.buffer import ReplayBuffer
 
 
 class InputError(RuntimeError):

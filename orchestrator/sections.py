@@ -34,7 +34,7 @@ class ImitationConfig:
 
     # What the expert observes beside s (workers/policies.py): "imitation", the reference's next state in its
     # own heading frame (blind to drift from the clip); "mimic", PULSE's s_g-mimic (§4.1), the reference's next
-    # state as offsets from the character in the character's heading frame (workers/tracking_goal.py).
+    # state as offsets from the character in the character's heading frame (workers/models/tracking_goal.py).
     observation: str = "imitation"
 
     def __post_init__(self) -> None:

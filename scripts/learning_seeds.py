@@ -47,8 +47,9 @@ from tempfile import TemporaryDirectory
 from orchestrator.build import untracked_trainer
 from orchestrator.compose import compose, validate
 from orchestrator.world import evaluation_sim_config, load_character_and_library
-from workers.evaluation.controller import (evaluation_mode, posterior_mean_action, relative_position_error,
-    tracking_error, without_tracking_termination)
+from workers.body.features import relative_position_error
+from workers.evaluation.controller import posterior_mean_action, tracking_error, without_tracking_termination
+from workers.models.nets import evaluation_mode
 from workers.learners.vae import build_controller
 from workers.sim.env import make_sim
 

@@ -76,9 +76,14 @@ def configs(former: bool = False) -> dict:
     for algo in sorted(p.stem for p in (CONF / "algo").glob("*.yaml")):
         for scale in sorted(p.stem for p in (CONF / "scale").glob("*.yaml")):
             cfg = validate(compose([f"algo={algo}", f"scale={scale}", "run_dir=outputs/snapshot"]))
+            # The stage hash covers the source files' digest (tracking.stage_code=source): any edit of them changes
+            # it. The same hash with the package's version instead says whether anything else did.
+            same_code = validate(compose([f"algo={algo}", f"scale={scale}", "run_dir=outputs/snapshot",
+                                          "tracking.stage_code=version"]))  # fmt: skip
             out[f"{algo}/{scale}"] = {
                 "config": asdict(cfg),
                 "stage_hash": chain_hash(cfg, config_hash, upstream_config),
+                "stage_hash_but_code": chain_hash(same_code, config_hash, upstream_config),
             }
             if former:
                 out[f"{algo}/{scale}"]["former_stage_hash"] = chain_hash(cfg, former_hash, upstream_config)

@@ -13,12 +13,12 @@ import numpy as np
 import torch
 
 from workers.body.character import Character
-from workers.evaluation.controller import evaluation_mode
 from workers.models import body_state
 from workers.models.actor_critic import ActorCritic
+from workers.models.nets import evaluation_mode
+from workers.models.tracking_goal import mimic_goal
 from workers.motion.library import MotionLibrary
 from workers.rewards import imitation_observation
-from workers.tracking_goal import mimic_goal
 
 
 def teacher_actions(
@@ -35,7 +35,7 @@ def teacher_actions(
 
     module: the expert, a PPO `ActorCritic` acting on `observation`: "imitation",
     (s, s̃_{t+1}) = (features(states), library.features(clip_id, frame + 1)), or "mimic",
-    s and PULSE's s_g-mimic toward the reference's body states at frame + 1 (`workers.tracking_goal`).
+    s and PULSE's s_g-mimic toward the reference's body states at frame + 1 (`workers.models.tracking_goal`).
     states: body states [N, B, 13] (`body_state.pack`); row i is at frame `frame[i]`
     of clip `clip_id[i]` (ints broadcast to all rows), i.e. `sim.start_frame + sim.steps`
     of the environment it came from. The action is the actor's mean μ(o) and, with

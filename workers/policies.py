@@ -15,7 +15,7 @@ trajectories whichever process runs the worker.
   the observation `obs`: "state" (s, AMP's policy input for single-clip imitation),
   "imitation" (s and the reference's s̃_{t+1}, the tracking expert's) or "mimic" (s and
   PULSE's s_g-mimic, the reference's next state as offsets from the character:
-  `workers.tracking_goal`). With `residual`, the sampled action is an offset from the
+  `workers.models.tracking_goal`). With `residual`, the sampled action is an offset from the
   reference's next pose (the PD targets that hold it), as tracking controllers commonly
   act: the untrained policy then starts as PD tracking of the clip rather than holding
   the zero pose, which earns no imitation reward at all. The trajectory's `actions` are
@@ -45,9 +45,9 @@ from workers.models import body_state
 from workers.models.actor_critic import ActorCritic
 from workers.models.deploy import ActorMean, PriorMeanController
 from workers.models.nets import gaussian
+from workers.models.tracking_goal import goal_dim
 from workers.rewards import imitation_observation
 from workers.sim.env import Simulator
-from workers.tracking_goal import goal_dim, next_goal
 
 OBSERVATIONS = ("state", "imitation", "mimic")
 EXPERT_KINDS = ("ppo", "vae")
@@ -72,7 +72,7 @@ def observe(kind: str, sim: Simulator, bs: np.ndarray) -> np.ndarray:
         return s
     if kind == "imitation":
         return imitation_observation(s, sim.reference_next_features())
-    g = next_goal("mimic", sim, bs).numpy()
+    g = sim.tracking_goal("mimic", bs).numpy()
     return np.concatenate((s, g), axis=-1).astype(np.float32)
 
 
@@ -83,7 +83,7 @@ def observe_on(device: torch.device, kind: str, sim: Simulator, bs: np.ndarray) 
     s = body_state.features(b)
     if kind == "state":
         return s
-    return torch.cat((s, next_goal("reference" if kind == "imitation" else "mimic", sim, b).to(device)), dim=-1)
+    return torch.cat((s, sim.tracking_goal("reference" if kind == "imitation" else "mimic", b).to(device)), dim=-1)
 
 
 class Policy:
@@ -183,7 +183,7 @@ class VAEPolicy(Policy):
     @torch.no_grad()
     def act(self, sim: Simulator, bs: np.ndarray) -> tuple[np.ndarray, dict[str, np.ndarray]]:
         s = body_state.features(self.tensor(bs))
-        posterior, prior = self.controller.encode(s, next_goal(self.controller.goal, sim, bs).to(self.device))
+        posterior, prior = self.controller.encode(s, sim.tracking_goal(self.controller.goal, bs).to(self.device))
         use_prior = self.tensor(self.use_prior)[:, None]
         mean = torch.where(use_prior, prior.mean, posterior.mean)
         log_std = torch.where(use_prior, prior.log_std, posterior.log_std)
@@ -353,7 +353,7 @@ class ExpertPolicy(Policy):
         if isinstance(expert, GaussianPolicy):
             return expert.mean_on_device(sim, bs)
         s = body_state.features(self.tensor(bs))
-        posterior, _ = expert.encode(s, next_goal(expert.goal, sim, bs).to(self.device))
+        posterior, _ = expert.encode(s, sim.tracking_goal(expert.goal, bs).to(self.device))
         return expert.act(s, posterior.mean)
 
     @torch.no_grad()

@@ -9,7 +9,7 @@ at the end (`finish`), whose arrays [T, M, ...] go into the trajectory's extras.
 - `ImitationReward`: the tracking expert's DeepMimic-style reward and its terms
   (`workers.rewards`).
 - `TrackingReward`: ControlVAE's Eq. 20 reward of each collected state against its
-  reference, which data balancing reads (`workers.balancing`).
+  reference (`workers.rewards.tracking_reward`), which data balancing reads (`workers.replay.balancing`).
 
 Beside a simulator that computes on its device (MuJoCo Warp: `Simulator.computes_on_device`) they
 compute there, in torch (`workers.models.device_features`), into arrays on the device that `finish`
@@ -21,12 +21,11 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from workers.balancing import tracking_reward
 from workers.body.character import Character
 from workers.body.features import amp_dim, amp_features, state_features
 from workers.models import body_state, device_features
 from workers.models.device_features import DeviceState
-from workers.rewards import DEFAULT_WEIGHTS, IMITATION_TERMS, imitation_reward
+from workers.rewards import DEFAULT_WEIGHTS, IMITATION_TERMS, imitation_reward, tracking_reward
 from workers.sim.env import Simulator, StepResult
 from workers.types import KinState
 

@@ -1,4 +1,4 @@
-"""The imitation reward of a tracking expert, and the observation it acts on.
+"""The imitation reward of a tracking expert and the observation it acts on; ControlVAE's tracking reward (Eq. 20).
 
 A DeepMimic-style imitation reward in the multiplicative form of Won et al. 2020
 (whose imitation controllers PhysicsVAE distils): one exponential term per
@@ -86,3 +86,9 @@ def imitation_reward(
 def imitation_observation(state: np.ndarray, ref_next: np.ndarray) -> np.ndarray:
     """The tracker's observation [N, 2D]: s [N, D] and the reference's next s̃_{t+1} [N, D]."""
     return np.concatenate((state, ref_next), axis=-1).astype(np.float32)
+
+
+def tracking_reward(state: np.ndarray, ref_state: np.ndarray, weights: np.ndarray, temperature: float = 20.0):
+    """ControlVAE's Eq. 20, the reward data balancing reads (`workers.replay.balancing`): exp(−‖W(s̃ − s)‖₁ / T_V)
+    over the last axis of s [..., D], W a weight per feature [D]."""
+    return np.exp(-np.abs((ref_state - state) * weights).sum(-1) / temperature).astype(np.float32)

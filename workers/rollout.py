@@ -37,7 +37,7 @@ import numpy as np
 import torch
 
 from workers.body.character import Character
-from workers.evaluation.controller import relative_position_error
+from workers.body.features import relative_position_error
 from workers.learners.base import Weights
 from workers.motion.library import MotionLibrary
 from workers.policies import Policy

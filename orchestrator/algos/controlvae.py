@@ -15,7 +15,7 @@ and the VAE's new weights are published. Locally the same calls run in order.
 The collection is the paper's (§3.4.3–3.4.4): the workers record each state's
 reward of Eq. 20 (its mean is the learning curve, `rollout/reward`); every
 `balance_every` iterations the replay's trajectories update a value per library
-frame (Eq. 18–19, `workers.balancing`) and the workers draw their starts, and the
+frame (Eq. 18–19, `workers.replay.balancing`) and the workers draw their starts, and the
 starts of clip switches (`switch_rate`), ∝ 1/max(0.01, V).
 """
 
@@ -28,10 +28,10 @@ from orchestrator.algos.base import Component, ReplayFed, UpdateSchedule
 from orchestrator.components.controlvae import VAEActor, WorldModelActor
 from orchestrator.components.replay import ReplayActor
 from orchestrator.evaluation.protocols import evaluate_controller
-from workers.balancing import FrameValues
 from workers.learners.vae import state_weight_vector
 from workers.policies import VAEPolicy
 from workers.recorders import TrackingReward
+from workers.replay.balancing import FrameValues
 
 
 class ControlVAE(ReplayFed):

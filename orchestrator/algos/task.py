@@ -8,7 +8,7 @@ frozen world model. The task policy outputs a residual μ_g on the prior's mean
 episode and redrawn at `algo.task.change_rate`; they are part of the policy's input.
 
 Trainer `model` (ControlVAE §4.2): rollout workers run the task policy in the
-simulator (`workers.task_policy`), their states and goal sequences go to the task
+simulator (`workers.task.policy`), their states and goal sequences go to the task
 learner (`learner-task`) directly, which keeps the newest `buffer_size` of them
 (B_g) and takes the updates its replay ratio makes due: N rollouts of T steps
 through the frozen world model, Eq. 22's losses.
@@ -18,7 +18,7 @@ learner, and how PhysicsVAE and PULSE train their task policies: PPO (the same l
 `learner-ppo`, and loop as AMP and the tracking expert: `orchestrator.algos.onpolicy`) on the
 reward e^(−L_g) of the state each step reaches, episodes ending early on a fall. The
 actor-critic sees the state and the goal; its action is the latent offset on the frozen prior's
-mean and, with σ > 0, the helper branch's pre-activation (`workers.task_policy.TaskPPOPolicy`);
+mean and, with σ > 0, the helper branch's pre-activation (`workers.task.policy.TaskPPOPolicy`);
 its exploration is the fixed std `algo.ppo.action_std` (PULSE: 0.22 in latent units).
 `algo=task` builds a `Task`, which is a `TaskPPO` when `algo.task.trainer=ppo`.
 
@@ -40,7 +40,7 @@ from orchestrator.components.ppo import PPOActor
 from orchestrator.components.task import TaskActor, skill_model
 from orchestrator.evaluation.tasks import evaluate_task
 from workers.body.features import StateLayout
-from workers.task_policy import TaskPPOPolicy, TaskRolloutPolicy, ppo_dims
+from workers.task.policy import TaskPPOPolicy, TaskRolloutPolicy, ppo_dims
 
 
 class SkillTask:

@@ -38,7 +38,7 @@ from workers.policies import GaussianPolicy, VAEPolicy
 from workers.recorders import AMPFeatures, ImitationReward
 from workers.rollout import RolloutWorker
 from workers.sim.env import SimConfig
-from workers.task_policy import TaskPPOPolicy
+from workers.task.policy import TaskPPOPolicy
 
 POLICIES = ("vae", "vae-paper", "actor-critic", "tracker", "task")
 LAPTOP_VAE = VAEConfig(latent_dim=32, encoder_hidden=(256, 256), policy="mlp", policy_hidden=(256, 256))

@@ -9,9 +9,9 @@ import numpy as np
 from orchestrator.components.base import incarnation
 from orchestrator.schema import Config
 from orchestrator.world import load_character_and_library, seed_of
-from workers.balancing import frame_sums, library_rows
 from workers.motion.library import MotionLibrary
-from workers.replay import ReplayBuffer
+from workers.replay.balancing import frame_sums, library_rows
+from workers.replay.buffer import ReplayBuffer
 from workers.types import StartBatch, Trajectory, WindowBatch
 
 

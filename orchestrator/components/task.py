@@ -22,7 +22,7 @@ from orchestrator.upstream import StageError, Upstream, existing_run, layer_stat
 from orchestrator.world import seed_of
 from workers.learners.task import GoalBuffer, TaskLearner
 from workers.learners.world_model import build_world_model
-from workers.task_policy import skill_controller
+from workers.task.policy import skill_controller
 from workers.types import Trajectory
 
 

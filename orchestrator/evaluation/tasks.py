@@ -16,7 +16,7 @@ from orchestrator.world import evaluation_sim_config
 from workers.body.character import Character
 from workers.evaluation.tasks import evaluate_task_policy
 from workers.motion.library import MotionLibrary
-from workers.task_policy import TaskRolloutPolicy
+from workers.task.policy import TaskRolloutPolicy
 
 
 def evaluate_task(

@@ -63,7 +63,7 @@ def test_model_based_heading_runs_end_to_end_in_the_simulator(character, walk_ru
     from workers.evaluation.tasks import evaluate_task_policy
     from workers.learners.task import GoalBuffer
     from workers.rollout import RolloutWorker
-    from workers.task_policy import TaskRolloutPolicy
+    from workers.task.policy import TaskRolloutPolicy
 
     vae, _ = vae_runs("conditional")
     torch.manual_seed(0)  # after the fixtures: whether they trained in this test or an earlier one must not matter

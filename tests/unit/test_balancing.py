@@ -6,19 +6,19 @@ import numpy as np
 import pytest
 import torch
 
-from workers.balancing import (
-    FrameValues,
-    discounted_returns,
-    frame_sums,
-    library_rows,
-    tracking_reward,
-)
 from workers.learners.base import Weights
 from workers.learners.vae import VAEConfig, build_controller, state_weight_vector
 from workers.motion.library import MotionLibrary, balancing_weights
 from workers.policies import VAEPolicy
 from workers.recorders import TrackingReward
-from workers.replay import ReplayBuffer
+from workers.replay.balancing import (
+    FrameValues,
+    discounted_returns,
+    frame_sums,
+    library_rows,
+)
+from workers.replay.buffer import ReplayBuffer
+from workers.rewards import tracking_reward
 from workers.rollout import RolloutWorker
 from workers.types import Trajectory
 

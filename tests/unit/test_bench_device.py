@@ -21,7 +21,7 @@ ROOT = Path(__file__).resolve().parents[2]
         # scripts/device-warp.sh: the Warp benchmark, the simulator and its tests' imports
         "orchestrator.bench.warp_sim, workers.sim.warp_sim, workers.sim.env",
         # and its host benchmark and policy-device tests
-        "orchestrator.bench.host, workers.task_policy, workers.learners.ppo",
+        "orchestrator.bench.host, workers.task.policy, workers.learners.ppo",
     ],
 )
 def test_the_device_checks_import_only_torch_numpy_and_mujoco(modules):

@@ -67,9 +67,8 @@ def test_the_reference_on_the_device_is_the_librarys_through_cycles(walk_run):
 
 
 def test_rewards_are_the_numpy_ones(character, walk_run, stepped, kin):
-    from workers.balancing import tracking_reward
     from workers.body.features import state_features
-    from workers.rewards import imitation_errors, imitation_reward
+    from workers.rewards import imitation_errors, imitation_reward, tracking_reward
 
     clips, frames = stepped.clip_id, stepped.start_frame + stepped.steps  # each character's own reference
     ref = walk_run.state(clips, frames)

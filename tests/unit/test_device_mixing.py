@@ -232,9 +232,9 @@ def test_a_ppo_policys_evaluation_and_video_episode_on_the_gpu_as_on_the_cpu(cha
 
 @pytest.mark.slow
 def test_the_tracking_evaluations_on_warps_cpu_device_with_the_controller_on_the_gpu(character, walk_run):
-    """MuJoCo Warp on its CPU device makes the tracking goal there (a torch tensor, `next_goal`); the controller on
-    the GPU: the mirror of a CUDA simulator beside a CPU controller (the first bug of issue 45). Compiles MuJoCo
-    Warp's kernels on a cold cache, hence `slow`."""
+    """MuJoCo Warp on its CPU device makes the tracking goal there (a torch tensor, `Simulator.tracking_goal`); the
+    controller on the GPU: the mirror of a CUDA simulator beside a CPU controller (the first bug of issue 45).
+    Compiles MuJoCo Warp's kernels on a cold cache, hence `slow`."""
     pytest.importorskip("mujoco_warp")
     from workers.evaluation.controller import time_until_fall, tracking_error
     from workers.sim.env import SimConfig

@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 import torch
 
+from workers.body.features import relative_position_error
 from workers.evaluation.controller import (
     fall_start,
     random_sampling,
     reference_targets,
-    relative_position_error,
     time_until_fall,
     tracking_error,
     tracking_segments,

@@ -8,15 +8,15 @@ import numpy as np
 import pytest
 
 from workers.body import rotations as rot
-from workers.goals import (
+from workers.losses.task import VR_POINTS
+from workers.models.body_state import pack
+from workers.sim.env import BatchedSim
+from workers.task.goals import (
     HEIGHT_HIGH_M,
     SUCCESS_RADIUS_M,
     GoalSampler,
     SuccessTracker,
 )
-from workers.losses.task import VR_POINTS
-from workers.models.body_state import pack
-from workers.sim.env import BatchedSim
 
 NUM_BODIES = 15
 HEAD, LEFT_HAND, RIGHT_HAND = (body for _, body, _ in VR_POINTS)

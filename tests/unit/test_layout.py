@@ -182,3 +182,13 @@ def test_helpers_live_below_the_commands_that_use_them():
         m: ts for m, ts in below.items() if room_of(m) in ("orchestrator.tracking", "orchestrator.sweep") and ts
     } == {}
     assert "orchestrator.trainer" not in graph["orchestrator.preflight"]
+
+
+def test_workers_keeps_its_modules_in_rooms():
+    """At most 8 loose modules at the top of workers/, and the rollout side (the worker, its policies and recorders,
+    PULSE's labels) imports nothing of the evaluation protocols."""
+    loose = sorted(p.stem for p in (ROOT / "workers").glob("*.py") if p.stem != "__init__")
+    assert len(loose) <= 8, loose
+    graph = import_graph()
+    for module in ("workers.rollout", "workers.policies", "workers.recorders", "workers.distill"):
+        assert not {t for t in graph[module] if t.startswith("workers.evaluation")}, module

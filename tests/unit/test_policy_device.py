@@ -23,7 +23,7 @@ from workers.models.device_features import DeviceReference
 from workers.models.nets import gaussian
 from workers.policies import ExpertPolicy, GaussianPolicy, VAEPolicy
 from workers.sim.env import make_sim
-from workers.task_policy import TaskPPOPolicy, TaskRolloutPolicy
+from workers.task.policy import TaskPPOPolicy, TaskRolloutPolicy
 
 SKILL = VAEConfig(latent_dim=8, encoder_hidden=(32,), policy="mlp", policy_hidden=(32,))
 PPO = PPOConfig(policy_hidden=(16,), value_hidden=(16,))

@@ -13,7 +13,7 @@ import copy
 import numpy as np
 import pytest
 
-from workers.replay import ReplayBuffer
+from workers.replay.buffer import ReplayBuffer
 from workers.types import Trajectory
 
 B, A = 2, 3

@@ -13,7 +13,7 @@ from workers.learners.base import Weights
 from workers.learners.vae import VAEConfig, build_controller
 from workers.models import body_state
 from workers.policies import VAEPolicy
-from workers.replay import ReplayBuffer
+from workers.replay.buffer import ReplayBuffer
 from workers.rollout import RolloutWorker
 
 SMALL = VAEConfig(latent_dim=8, encoder_hidden=(32,), policy="mlp", policy_hidden=(64,))

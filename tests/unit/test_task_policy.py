@@ -13,7 +13,7 @@ from workers.learners.task import TaskConfig, task_policy
 from workers.learners.vae import VAEConfig, build_controller
 from workers.losses.task import task_terms
 from workers.rollout import RolloutWorker
-from workers.task_policy import TaskRolloutPolicy
+from workers.task.policy import TaskRolloutPolicy
 
 SKILL = VAEConfig(latent_dim=8, encoder_hidden=(32,), policy="mlp", policy_hidden=(32,))
 
@@ -75,7 +75,7 @@ def test_the_ppo_task_policy_records_the_progress_reward_too(character, walk_run
     """The PPO trainer's policy (ablation_sigma's) acts through its own path: the same d_{t-1} − d_t."""
     from workers.learners.base import Weights
     from workers.learners.ppo import PPOConfig
-    from workers.task_policy import TaskPPOPolicy
+    from workers.task.policy import TaskPPOPolicy
 
     config = TaskConfig(task="point_goal", trainer="ppo", reward="progress", sigma=0.5, change_rate=3.0)
     ppo = PPOConfig(policy_hidden=(16,), value_hidden=(16,))

@@ -9,9 +9,9 @@ import torch
 from workers.body.features import StateLayout
 from workers.evaluation.imitation import reference_actor
 from workers.models import body_state
+from workers.models.tracking_goal import goal, goal_dim, mimic_goal
 from workers.rewards import imitation_observation
 from workers.sim.env import BatchedSim, without_tracking_termination
-from workers.tracking_goal import goal, goal_dim, mimic_goal
 
 B = 15
 

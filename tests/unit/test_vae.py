@@ -403,7 +403,7 @@ def test_pulses_mimic_goal_is_what_its_posterior_reads_and_shows_drift(walk_run)
     normaliser of its own: the KL term equals the one worked from that goal, and moving the reference 1 m
     sideways (drift) changes it, where the reference-frame goal cannot see the move."""
     from workers.models import body_state
-    from workers.tracking_goal import mimic_goal
+    from workers.models.tracking_goal import mimic_goal
 
     batch = random_batch(walk_run)
     moved = VAEBatch(batch.states, batch.reference.clone(), batch.actions)

@@ -231,12 +231,11 @@ def test_the_rewards_recorded_on_the_device_are_numpys(warp, character, library)
     """The tracker's imitation reward from the step's state on the device against the reference looked up there,
     and ControlVAE's tracking reward in a worker (its first state, every step's, and resets'), agree with
     the NumPy recorders' to float32 rounding."""
-    from workers.balancing import tracking_reward
     from workers.learners.vae import state_weight_vector
     from workers.models.body_state import features_np
     from workers.policies import VAEPolicy
     from workers.recorders import ImitationReward, TrackingReward
-    from workers.rewards import imitation_reward
+    from workers.rewards import imitation_reward, tracking_reward
     from workers.rollout import RolloutWorker
 
     reset_both([warp], [WALK, WALK, KICK, KICK], [5, 20, 3, 10])

@@ -107,10 +107,10 @@ def test_every_kind_of_policy_collects_with_the_body_states_on_the_device(charac
     from workers.learners.task import TaskConfig
     from workers.learners.vae import VAEConfig
     from workers.models.body_state import features_np
+    from workers.models.tracking_goal import mimic_goal
     from workers.policies import GaussianPolicy, VAEPolicy, observation_dim
     from workers.rollout import RolloutWorker
-    from workers.task_policy import TaskRolloutPolicy
-    from workers.tracking_goal import mimic_goal, next_goal
+    from workers.task.policy import TaskRolloutPolicy
 
     b, a = character.num_bodies, character.num_actions
     skill = VAEConfig(latent_dim=8, encoder_hidden=(32,), policy="mlp", policy_hidden=(32,))
@@ -135,10 +135,10 @@ def test_every_kind_of_policy_collects_with_the_body_states_on_the_device(charac
             s = features_np(traj.next_states[-1])
             ref = torch.from_numpy(worker.sim.reference_next_body_states())  # on the host, from the library
             goal = mimic_goal(torch.from_numpy(traj.next_states[-1]), ref).numpy()
-            on_device = next_goal("mimic", worker.sim, traj.next_states[-1]).cpu()
+            on_device = worker.sim.tracking_goal("mimic", traj.next_states[-1]).cpu()
             np.testing.assert_allclose(on_device, goal, rtol=0, atol=1e-4)
             ref_s = worker.sim.reference_next_features()
-            np.testing.assert_array_equal(next_goal("reference", worker.sim, traj.next_states[-1]).cpu(), ref_s)
+            np.testing.assert_array_equal(worker.sim.tracking_goal("reference", traj.next_states[-1]).cpu(), ref_s)
             np.testing.assert_allclose(obs, np.concatenate((s, goal), axis=-1), rtol=0, atol=1e-4)
 
 
@@ -178,12 +178,12 @@ def test_a_task_policy_acts_and_records_on_the_device(character, library, monkey
     """The task policies read the body states on the device, act there (the simulator gets tensors) and compute
     their rewards there: e^(-L_g) and the point goal's progress d_{t-1} - d_t equal NumPy's of the stored
     states and goals; the goals are drawn around the roots, and a reset's goal around its new root."""
-    from workers.goals import DEFAULT_RANGES
     from workers.learners.ppo import PPOConfig
     from workers.learners.task import TaskConfig
     from workers.losses.task import task_terms
     from workers.rollout import RolloutWorker
-    from workers.task_policy import TaskPPOPolicy, TaskRolloutPolicy
+    from workers.task.goals import DEFAULT_RANGES
+    from workers.task.policy import TaskPPOPolicy, TaskRolloutPolicy
 
     b, a = character.num_bodies, character.num_actions
     skill = VAEConfig(latent_dim=8, encoder_hidden=(32,), policy="mlp", policy_hidden=(32,))

@@ -118,3 +118,13 @@ def amp_features(character: Character, s: KinState) -> np.ndarray:
         axis=1,
     )
     return out.astype(np.float32)
+
+
+def relative_position_error(xpos: np.ndarray, ref_xpos: np.ndarray) -> np.ndarray:
+    """Mean over non-root bodies of ‖(x_j − x_root) − (x̃_j − x̃_root)‖: [..., B, 3] × 2 -> [...].
+
+    Body 0 is the root; its own term is always zero, so it is left out of the mean.
+    """
+    rel = xpos[..., 1:, :] - xpos[..., :1, :]
+    ref_rel = ref_xpos[..., 1:, :] - ref_xpos[..., :1, :]
+    return np.linalg.norm(rel - ref_rel, axis=-1).mean(-1)

@@ -18,37 +18,23 @@ Actions are the policy's mean (no exploration noise).
 
 from __future__ import annotations
 
-import contextlib
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 
 import numpy as np
 import torch
 
 from workers.body.character import Character
+from workers.body.features import relative_position_error
 from workers.models import body_state
-from workers.models.nets import gaussian
+from workers.models.nets import evaluation_mode, gaussian
 from workers.models.vae import VAEController
 from workers.motion.library import MotionLibrary
 from workers.sim.env import SimConfig, Simulator, make_sim, without_tracking_termination
-from workers.tracking_goal import next_goal
 
 DEFAULT_START_CLIP = "humanoid3d_walk"
 
 # A policy maps the simulator's current state to actions [N, A]; it can stand in for the controller.
 Policy = Callable[[Simulator], np.ndarray]
-
-
-@contextlib.contextmanager
-def evaluation_mode(controller: torch.nn.Module | None) -> Iterator[None]:
-    was_training = controller.training if controller is not None else False
-    if controller is not None:
-        controller.eval()
-    try:
-        with torch.no_grad():
-            yield
-    finally:
-        if controller is not None:
-            controller.train(was_training)
 
 
 def sim_features(sim: Simulator) -> torch.Tensor:
@@ -61,7 +47,7 @@ def posterior_mean_action(controller: VAEController, sim: Simulator, bs: np.ndar
     the controller tracking the reference, as the tracking evaluations and recordings drive it."""
     bs = sim.body_states() if bs is None else bs
     s = body_state.features(torch.from_numpy(bs))
-    return posterior_mean(controller, s, next_goal(controller.goal, sim, bs)).cpu().numpy()
+    return posterior_mean(controller, s, sim.tracking_goal(controller.goal, bs)).cpu().numpy()
 
 
 def prior_action(controller: VAEController, sim: Simulator, generator: torch.Generator) -> np.ndarray:
@@ -92,16 +78,6 @@ def reference_targets(library: MotionLibrary) -> Policy:
         return sim.character.qpos_to_action(target.qpos)
 
     return policy
-
-
-def relative_position_error(xpos: np.ndarray, ref_xpos: np.ndarray) -> np.ndarray:
-    """Mean over non-root bodies of ‖(x_j − x_root) − (x̃_j − x̃_root)‖: [..., B, 3] × 2 -> [...].
-
-    Body 0 is the root; its own term is always zero, so it is left out of the mean.
-    """
-    rel = xpos[..., 1:, :] - xpos[..., :1, :]
-    ref_rel = ref_xpos[..., 1:, :] - ref_xpos[..., :1, :]
-    return np.linalg.norm(rel - ref_rel, axis=-1).mean(-1)
 
 
 # ----------------------------------------------------------------------------

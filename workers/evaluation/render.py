@@ -83,7 +83,8 @@ def record_fall_rollouts(
     """
     import torch
 
-    from workers.evaluation.controller import evaluation_mode, fall_start, prior_action
+    from workers.evaluation.controller import fall_start, prior_action
+    from workers.models.nets import evaluation_mode
     from workers.sim.env import make_sim, without_tracking_termination
 
     if num_rollouts < 1:
@@ -119,7 +120,8 @@ def record_tracking(
 ) -> Recording:
     """One clip (`clip`, else `fall_start`'s) tracked from its first frame with the posterior mean, as
     `tracking_error` tracks a segment, for up to `max_seconds` (a one-shot clip: until its last frame)."""
-    from workers.evaluation.controller import evaluation_mode, fall_start, posterior_mean_action
+    from workers.evaluation.controller import fall_start, posterior_mean_action
+    from workers.models.nets import evaluation_mode
     from workers.sim.env import make_sim, without_tracking_termination
 
     config = without_tracking_termination(sim_config)

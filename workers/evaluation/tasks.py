@@ -12,7 +12,7 @@ supplies the start, and the goals of `vr`).
   T the full length, so that a fall forfeits the rest of the episode; 1 is every goal
   met at every step.
 - `success`: the share of episodes that meet the task's own success rule
-  (`workers.goals.SuccessTracker`), over the episodes it could judge; for VR tracking also
+  (`workers.task.goals.SuccessTracker`), over the episodes it could judge; for VR tracking also
   `success_pulse`, PULSE's rule as the paper states it, without our no-fall clause (a fallen body is
   judged by its tracked points' distances as it lies, until every episode has fallen).
 - `style_deviation_deg`: the mean absolute deviation of the applied action from the
@@ -30,11 +30,11 @@ import numpy as np
 import torch
 
 from workers.body.character import Character
-from workers.goals import SuccessTracker
 from workers.losses.task import task_loss
 from workers.motion.library import MotionLibrary
 from workers.sim.env import SimConfig, make_sim, without_tracking_termination
-from workers.task_policy import TaskRolloutPolicy
+from workers.task.goals import SuccessTracker
+from workers.task.policy import TaskRolloutPolicy
 
 
 def evaluate_task_policy(

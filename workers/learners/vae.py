@@ -25,9 +25,9 @@ from workers.learners.base import Learner, Schedule, Weights, make_optimizer
 from workers.losses.kl import gaussian_kl
 from workers.losses.vae import PHYSICSVAE_REDUCTIONS, controlvae_loss, physicsvae_loss, pulse_loss
 from workers.models import body_state
+from workers.models.tracking_goal import GOALS, goal, goal_dim
 from workers.models.vae import PRIOR_TYPES, VAEController
 from workers.models.world_model import StateRegressor, WorldModel
-from workers.tracking_goal import GOALS, goal, goal_dim
 
 OBJECTIVES = ("controlvae", "physicsvae", "pulse")
 
@@ -78,7 +78,7 @@ class VAEConfig:
     # How PhysicsVAE's Eq. 1 reduces its squared errors over the action and state dimensions: mean (the
     # authors' nn.MSELoss, the scale of Table 1's α and β and of Fig. 9's α axis) | sum (Eq. 1 as printed).
     physicsvae_reduction: str = "mean"
-    # What the posterior is given as the goal (workers/tracking_goal.py): reference (s̃_{t+1}, the reference's
+    # What the posterior is given as the goal (workers/models/tracking_goal.py): reference (s̃_{t+1}, the reference's
     # next state in its own heading frame: ControlVAE's) | mimic (PULSE's s_g-mimic, §4.1: the reference's next
     # state as offsets from the character, which shows drift). mimic under the pulse objective only.
     goal: str = "reference"

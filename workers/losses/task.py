@@ -14,7 +14,7 @@ Goal parameters by task:
                                 follow a headset and two hand controllers (PULSE's VR controller
                                 tracking): the positions of `VR_POINTS` in a reference clip
 
-`workers.goals` draws these goals for rollouts and judges success.
+`workers.task.goals` draws these goals for rollouts and judges success.
 """
 
 from __future__ import annotations

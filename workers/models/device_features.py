@@ -137,7 +137,7 @@ class DeviceReference:
 
 
 def tracking_reward(state: torch.Tensor, ref_state: torch.Tensor, weights: torch.Tensor, temperature: float):
-    """ControlVAE's Eq. 20, exp(−‖W(s̃ − s)‖₁ / T_V) [...] (`workers.balancing.tracking_reward`)."""
+    """ControlVAE's Eq. 20, exp(−‖W(s̃ − s)‖₁ / T_V) [...] (`workers.replay.balancing.tracking_reward`)."""
     return torch.exp(-((ref_state - state) * weights).abs().sum(-1) / temperature)
 
 

@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import contextlib
+from collections.abc import Iterator, Sequence
 
 import torch
 from torch import nn
@@ -178,3 +179,17 @@ def gaussian(
     source = generator.device if generator is not None else torch.device("cpu")
     noise = torch.randn(tuple(shape), generator=generator, dtype=dtype, device=source)
     return noise if device is None else noise.to(device)
+
+
+@contextlib.contextmanager
+def evaluation_mode(controller: torch.nn.Module | None) -> Iterator[None]:
+    """The module in eval mode and no gradients inside; its mode as it was after."""
+    was_training = controller.training if controller is not None else False
+    if controller is not None:
+        controller.eval()
+    try:
+        with torch.no_grad():
+            yield
+    finally:
+        if controller is not None:
+            controller.train(was_training)

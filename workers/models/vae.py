@@ -217,7 +217,7 @@ class VAEController(nn.Module):
     ):
         super().__init__()
         self.latent_dim = latent_dim
-        self.goal = goal  # what the posterior is given (`workers.tracking_goal`); "reference" is s̃_{t+1}
+        self.goal = goal  # what the posterior is given (`workers.models.tracking_goal`); "reference" is s̃_{t+1}
         self.state_norm = Normalizer(state_dim)
         # A goal of its own size has its own normaliser; s' shares the state's.
         self.goal_norm = Normalizer(goal_dim) if goal_dim is not None else None

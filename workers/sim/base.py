@@ -43,6 +43,8 @@ from workers.body.character import Character
 from workers.body.features import state_features
 from workers.models.body_state import pack
 from workers.models.device_features import DeviceReference, DeviceState
+from workers.models.tracking_goal import check as check_goal
+from workers.models.tracking_goal import mimic_goal
 from workers.motion.library import MotionLibrary
 from workers.sim.terrain import TerrainConfig, ground_geoms, reset_lift, terrain_model
 from workers.types import KinState
@@ -397,6 +399,22 @@ class Simulator(abc.ABC):
         after each environment's current time (rows `env_ids` only, when given)."""
         ids = slice(None) if env_ids is None else env_ids
         return pack(self.library.state(self.clip_id[ids], self.start_frame[ids] + self.steps[ids] + 1))
+
+    def tracking_goal(self, kind: str, bs: np.ndarray | torch.Tensor) -> torch.Tensor:
+        """The tracking goal [N, G] (float32, `workers.models.tracking_goal`'s `kind`) of the environments in body
+        states bs [N, B, 13], toward each one's reference one control step ahead; on the device beside a simulator
+        that computes there (`computes_on_device`), else on the CPU (or where bs is, when it is a tensor)."""
+        check_goal(kind)
+        if self.computes_on_device:  # the reference looked up where the state is, the goal made there
+            ref, clips, frames = self.device_reference(), self.clip_id, self.start_frame + self.steps + 1
+            if kind == "reference":
+                return ref.frame_features(clips, frames)
+            b = torch.as_tensor(bs, dtype=torch.float32).to(ref.device)
+            return mimic_goal(b, ref.state(clips, frames).body_states)
+        if kind == "reference":
+            return torch.from_numpy(self.reference_next_features().astype(np.float32))
+        b = torch.as_tensor(bs, dtype=torch.float32)
+        return mimic_goal(b, torch.from_numpy(self.reference_next_body_states()).to(b.device))
 
     # Saving and restoring ----------------------------------------------------
     def save_state(self) -> dict[str, np.ndarray]:

@@ -16,21 +16,16 @@ Two goals, by name:
   ω̂_t − ω_t; we take t + 1 like the other terms (PHC's released code does too).
 
 Both are computed in torch from body states [..., B, 13] (`workers.models.body_state`)
-so that a learner can take them from stored windows and a policy from a simulator.
+so that a learner can take them from stored windows and a policy from a simulator
+(`workers.sim.base.Simulator.tracking_goal`).
 """
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
-import numpy as np
 import torch
 
 from workers.body.features import StateLayout
 from workers.models.body_state import ANG, LIN, POS, QUAT, features, quat_to_matrix, yaw, yaw_matrix
-
-if TYPE_CHECKING:
-    from workers.sim.env import BatchedSim
 
 GOALS = ("reference", "mimic")
 MIMIC_PER_BODY = 24
@@ -75,20 +70,3 @@ def goal(kind: str, bs: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
     """The goal [..., G] of body states bs toward the reference's next body states ref [..., B, 13]."""
     check(kind)
     return features(ref) if kind == "reference" else mimic_goal(bs, ref)
-
-
-def next_goal(kind: str, sim: BatchedSim, bs: np.ndarray | torch.Tensor) -> torch.Tensor:
-    """The goal [M, G] (float32) of a simulator's environments in body states bs [M, B, 13], toward each one's
-    reference one control step ahead; on the simulator's device beside one that computes there
-    (`Simulator.computes_on_device`), else on the CPU (or where bs is, when it is a tensor)."""
-    check(kind)
-    if sim.computes_on_device:  # the reference looked up where the simulator's state is, the goal made there
-        ref, clips, frames = sim.device_reference(), sim.clip_id, sim.start_frame + sim.steps + 1
-        if kind == "reference":
-            return ref.frame_features(clips, frames)
-        b = torch.as_tensor(bs, dtype=torch.float32).to(ref.device)
-        return mimic_goal(b, ref.state(clips, frames).body_states)
-    if kind == "reference":
-        return torch.from_numpy(sim.reference_next_features().astype(np.float32))
-    b = torch.as_tensor(bs, dtype=torch.float32)
-    return mimic_goal(b, torch.from_numpy(sim.reference_next_body_states()).to(b.device))

@@ -3,7 +3,8 @@
 - Eq. 20, the reward of a simulated state s_t against its reference s̃_t:
   r_t = exp(−‖W(s̃_t − s_t)‖₁ / T_V), with W the reconstruction loss's feature
   weights (Eq. 16) and T_V = 20. Its mean over the collected states is also the
-  paper's learning curve. `workers.recorders.TrackingReward` records it for every collected state.
+  paper's learning curve. `workers.rewards.tracking_reward` computes it, and
+  `workers.recorders.TrackingReward` records it for every collected state.
 - Eq. 18, the discounted return of a state along its simulated trajectory,
   bootstrapped at the trajectory's end with the value of the reference frame after
   its last state: V*_t = Σ_{k=0}^{T−t} γ^k r_{t+k} + γ^{T+1−t} V_{T+1} (γ = 0.95).
@@ -23,11 +24,6 @@ from typing import Any
 import numpy as np
 
 from workers.motion.library import MotionLibrary, balancing_weights
-
-
-def tracking_reward(state: np.ndarray, ref_state: np.ndarray, weights: np.ndarray, temperature: float = 20.0):
-    """Eq. 20: exp(−‖W(s̃ − s)‖₁ / T_V) over the last axis of s [..., D], W a weight per feature [D]."""
-    return np.exp(-np.abs((ref_state - state) * weights).sum(-1) / temperature).astype(np.float32)
 
 
 def library_rows(library: MotionLibrary, clip_ids: np.ndarray, frames: np.ndarray) -> np.ndarray:

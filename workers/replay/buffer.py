@@ -31,7 +31,7 @@ from typing import Any
 
 import numpy as np
 
-from workers.balancing import discounted_returns
+from workers.replay.balancing import discounted_returns
 from workers.types import StartBatch, Trajectory, WindowBatch
 
 _STREAM_SHIFT = 32  # stream id = worker << 32 | env

@@ -1,7 +1,7 @@
 """The task policy on a frozen skill decoder, as a rollout worker runs it.
 
 `TaskRolloutPolicy` is a `Policy` and a `Recorder` at once: it keeps every
-environment's goal (`workers.goals.GoalSampler`: drawn when an episode starts,
+environment's goal (`workers.task.goals.GoalSampler`: drawn when an episode starts,
 redrawn within it at the task's change rate, part of the policy's input), acts
 with z around μ_p(s) + μ_g(s, g) and the frozen decoder (plus the helper branch
 when σ > 0), and records per step the goal it acted for (`goal`), the task reward
@@ -22,7 +22,6 @@ from typing import Any
 import numpy as np
 import torch
 
-from workers.goals import GoalSampler
 from workers.learners.base import Weights
 from workers.learners.task import TaskConfig, task_policy
 from workers.learners.vae import build_controller
@@ -33,6 +32,7 @@ from workers.models.nets import gaussian
 from workers.policies import Policy
 from workers.recorders import Recorder, record_buffer, to_host
 from workers.sim.env import Simulator, StepResult
+from workers.task.goals import GoalSampler
 
 
 def helper_layout(config: TaskConfig, state_dim: int, latent_dim: int, action_dim: int) -> HelperLayout | None:
