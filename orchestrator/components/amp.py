@@ -10,7 +10,6 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-import torch
 
 from orchestrator.components.base import LearnerActor, compiled, learner_device
 from orchestrator.schema import Config
@@ -39,8 +38,7 @@ class DiscriminatorActor(LearnerActor):
     """AMP's discriminator: the clip's transitions against the policy's; rewards r = w_G·r_G + w_S·r_S."""
 
     def __init__(self, cfg: Config):
-        super().__init__()
-        torch.set_num_threads(cfg.runtime.torch_threads)
+        super().__init__(cfg)
         character, library = load_character_and_library(cfg)
         self.config = cfg.algo.discriminator
         self.weights = cfg.algo.amp

@@ -16,7 +16,10 @@ import time
 from typing import Any
 
 import numpy as np
+import torch
 
+from orchestrator.schema import Config
+from orchestrator.world import seed_of
 from workers.learners.base import Learner, Weights, resolve_device
 
 log = logging.getLogger(__name__)
@@ -58,13 +61,23 @@ def compiled(learner: Learner, cfg: Any) -> Learner:
     return learner
 
 
+def actor_preamble(cfg: Config, seed_offset: int | None = None) -> None:
+    """What every actor does first, in whatever process hosts it: torch's threads as `runtime.torch_threads`, and,
+    for an actor whose networks draw their first weights from torch's global generator, that generator seeded for
+    its part of the run (`seed_of(cfg, seed_offset)`)."""
+    torch.set_num_threads(cfg.runtime.torch_threads)
+    if seed_offset is not None:
+        torch.manual_seed(seed_of(cfg, seed_offset))
+
+
 class LearnerActor:
     """What every method's learner actors share: weights, checkpoints, and the report every `train` returns."""
 
     learner: Learner
 
-    def __init__(self) -> None:
+    def __init__(self, cfg: Config, seed_offset: int | None = None) -> None:
         self.incarnation = incarnation()
+        actor_preamble(cfg, seed_offset)
 
     def report(self, metrics: list[dict[str, float]]) -> dict[str, Any]:
         """Mean metrics of the updates, the weights' version, and this actor's incarnation."""

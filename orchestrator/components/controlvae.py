@@ -4,8 +4,6 @@ from __future__ import annotations
 
 from typing import Any
 
-import torch
-
 from orchestrator.components.base import LearnerActor, compiled, learner_device
 from orchestrator.schema import Config
 from orchestrator.world import load_character_and_library, seed_of
@@ -18,9 +16,7 @@ from workers.types import StartBatch, WindowBatch
 
 class WorldModelActor(LearnerActor):
     def __init__(self, cfg: Config, num_bodies: int, action_dim: int):
-        super().__init__()
-        torch.set_num_threads(cfg.runtime.torch_threads)
-        torch.manual_seed(seed_of(cfg, 2))
+        super().__init__(cfg, seed_offset=2)
         dt = 1.0 / cfg.character.control_hz
         self.learner = compiled(
             WorldModelLearner(num_bodies, action_dim, dt, cfg.algo.world_model, learner_device(cfg)), cfg
@@ -34,9 +30,7 @@ class VAEActor(LearnerActor):
     """The VAE learner with a frozen copy of the world model and the library it draws references from."""
 
     def __init__(self, cfg: Config, num_bodies: int, action_dim: int):
-        super().__init__()
-        torch.set_num_threads(cfg.runtime.torch_threads)
-        torch.manual_seed(seed_of(cfg, 3))
+        super().__init__(cfg, seed_offset=3)
         _, self.library = load_character_and_library(cfg)
         wm = cfg.algo.world_model
         world_model = build_world_model(num_bodies, action_dim, wm, 1.0 / cfg.character.control_hz)

@@ -35,9 +35,7 @@ class OfflineActor(LearnerActor):
     window: int  # transitions per sampled window
 
     def __init__(self, cfg: Config, demos: DemoSet | Upstream, key: int):
-        super().__init__()
-        torch.set_num_threads(cfg.runtime.torch_threads)
-        torch.manual_seed(seed_of(cfg, key))
+        super().__init__(cfg, seed_offset=key)
         self.cfg = cfg
         self.demos = demos if isinstance(demos, DemoSet) else load_demos(demos)[0]
         holdout = cfg.algo.offline.holdout_rollouts

@@ -11,7 +11,6 @@ from dataclasses import replace
 from typing import Any
 
 import numpy as np
-import torch
 
 from orchestrator.components.base import LearnerActor, compiled, learner_device
 from orchestrator.schema import Config
@@ -52,8 +51,7 @@ class PPOActor(LearnerActor):
     """PPO on the workers' trajectories; rewards from the trajectories' `reward` or given (AMP)."""
 
     def __init__(self, cfg: Config, obs_dim: int, act_dim: int, helper: HelperLayout | None = None):
-        super().__init__()
-        torch.set_num_threads(cfg.runtime.torch_threads)
+        super().__init__(cfg)
         ppo = replace(cfg.algo.ppo, seed=seed_of(cfg, 5))
         self.learner = compiled(PPOLearner(obs_dim, act_dim, ppo, learner_device(cfg), helper), cfg)
         self.running_return: np.ndarray | None = None  # per environment, across calls

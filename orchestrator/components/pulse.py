@@ -11,7 +11,6 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-import torch
 
 from orchestrator.components.base import LearnerActor, compiled, learner_device
 from orchestrator.schema import Config
@@ -26,9 +25,7 @@ from workers.types import WindowBatch
 
 class PulseActor(LearnerActor):
     def __init__(self, cfg: Config, num_bodies: int, action_dim: int, expert: Upstream):
-        super().__init__()
-        torch.set_num_threads(cfg.runtime.torch_threads)
-        torch.manual_seed(seed_of(cfg, 3))
+        super().__init__(cfg, seed_offset=3)
         self.character, self.library = load_character_and_library(cfg)
         t = expert_weights(expert).state  # downloaded here: a restarted actor needs nothing from the driver
         self.teacher = expert_module(t, num_bodies, action_dim)

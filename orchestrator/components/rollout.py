@@ -5,8 +5,8 @@ from __future__ import annotations
 from typing import Any, Protocol
 
 import numpy as np
-import torch
 
+from orchestrator.components.base import actor_preamble
 from orchestrator.schema import Config
 from orchestrator.world import load_character_and_library, seed_of
 from workers.body.character import Character
@@ -33,7 +33,7 @@ class RolloutActor:
     class, handed over by the trainer (a class pickles by reference)."""
 
     def __init__(self, cfg: Config, worker_id: int, method: type[MethodLike]):
-        torch.set_num_threads(cfg.runtime.torch_threads)
+        actor_preamble(cfg)
         character, library = load_character_and_library(cfg)
         self.worker = RolloutWorker(
             character,

@@ -14,7 +14,6 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-import torch
 
 from orchestrator.components.base import LearnerActor, compiled, learner_device
 from orchestrator.schema import Config
@@ -73,9 +72,7 @@ class TaskActor(LearnerActor):
     """The task policy's learner with the frozen skill model and world model, and B_g (`GoalBuffer`)."""
 
     def __init__(self, cfg: Config, num_bodies: int, action_dim: int, skill: Upstream):
-        super().__init__()
-        torch.set_num_threads(cfg.runtime.torch_threads)
-        torch.manual_seed(seed_of(cfg, 5))
+        super().__init__(cfg, seed_offset=5)
         payload = skill_model(skill, world_model=True)  # read here: a restarted actor needs nothing from the driver
         controller = skill_controller(payload, num_bodies, action_dim)
         wm_cfg, wm_state = payload["world_model"]
