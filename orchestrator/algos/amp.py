@@ -42,4 +42,4 @@ class AMP(OnPolicy):
         return rewards, {"discriminator": rt.call(disc, "train", *trajectories)}
 
     def progress(self, metrics: dict[str, float]) -> dict[str, str]:
-        return {**super().progress(metrics), "style": f"{metrics.get('disc/style_reward', float('nan')):.3g}"}
+        return {**super().progress(metrics), "style": f"{metrics.get('disc/reward/style', float('nan')):.3g}"}

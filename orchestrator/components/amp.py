@@ -2,7 +2,8 @@
 
 It takes the rollout workers' trajectories as they are (object references on Ray), scores them with
 the discriminator as it is (`rewards`: the style reward of AMP Eq. 7, mixed with a task reward by
-Eq. 4: one small [T, M] array per worker) and then learns from them (`train`).
+Eq. 4: one small [T, M] array per worker, `workers.learners.discriminator.amp_reward`) and then learns from them
+(`train`).
 """
 
 from __future__ import annotations
@@ -14,24 +15,15 @@ import numpy as np
 from orchestrator.components.base import LearnerActor, compiled, learner_device
 from orchestrator.schema import Config
 from orchestrator.world import load_character_and_library, seed_of
-from workers.body.character import Character
-from workers.body.features import amp_dim, amp_features
-from workers.learners.discriminator import DiscriminatorBatch, DiscriminatorLearner
-from workers.motion.library import MotionLibrary
+from workers.body.features import amp_dim
+from workers.learners.discriminator import (
+    DiscriminatorBatch,
+    DiscriminatorLearner,
+    amp_reward,
+    policy_transitions,
+    reference_transitions,
+)
 from workers.types import Trajectory
-
-
-def reference_transitions(character: Character, library: MotionLibrary) -> np.ndarray:
-    """Every consecutive pair of reference frames as (Φ(s), Φ(s')) [N, 2·amp_dim] (looping clips wrap)."""
-    clips, frames = [], []
-    for c, n in enumerate(library.num_frames):
-        last = n if library.loop[c] else n - 1
-        clips.append(np.full(last, c))
-        frames.append(np.arange(last))
-    clip, frame = np.concatenate(clips), np.concatenate(frames)
-    before = amp_features(character, library.state(clip, frame))
-    after = amp_features(character, library.state(clip, frame + 1))
-    return np.concatenate((before, after), axis=1)
 
 
 class DiscriminatorActor(LearnerActor):
@@ -54,26 +46,22 @@ class DiscriminatorActor(LearnerActor):
         for group in self.learner.optimizer.param_groups:
             group["lr"] = lr
 
-    @staticmethod
-    def transitions(tr: Trajectory) -> np.ndarray:
-        """(Φ(s), Φ(s')) [T·M, 2·amp_dim] of a trajectory, time-major."""
-        before, after = tr.extras["amp_obs"], tr.extras["amp_next_obs"]
-        return np.concatenate((before, after), axis=-1).reshape(-1, 2 * before.shape[-1])
-
     def rewards(self, *trajs: Trajectory) -> list[np.ndarray]:
-        """The mixed reward [T, M] of each trajectory, from the discriminator as it is now."""
-        out, style_all = [], []
+        """The mixed reward [T, M] of each trajectory (AMP Eq. 4), from the discriminator as it is now; its terms'
+        means are reported by the next `train` under reward/."""
+        out, terms = [], []
         for tr in trajs:
-            style = self.learner.reward(self.transitions(tr)).reshape(tr.done.shape)
-            task = tr.extras.get("task_reward", np.zeros_like(style))
-            out.append((self.weights.task_weight * task + self.weights.style_weight * style).astype(np.float32))
-            style_all.append(style)
-        self.last_rewards = {"style_reward": float(np.mean(np.concatenate(style_all)))}
+            style = self.learner.reward(policy_transitions(tr)).reshape(tr.done.shape)
+            reward, parts = amp_reward(style, tr.extras.get("task_reward"), self.weights.task_weight,
+                                       self.weights.style_weight)  # fmt: skip
+            out.append(reward)
+            terms.append(parts)
+        self.last_rewards = {f"reward/{k}": float(np.mean(np.concatenate([t[k] for t in terms]))) for k in terms[0]}
         return out
 
     def train(self, *trajs: Trajectory) -> dict[str, Any]:
         """Minibatches of the policy's transitions (shuffled) against as many reference transitions."""
-        policy = np.concatenate([self.transitions(tr) for tr in trajs])
+        policy = np.concatenate([policy_transitions(tr) for tr in trajs])
         size = self.config.batch_size
         order = self.rng.permutation(len(policy))
         metrics = []

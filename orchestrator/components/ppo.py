@@ -15,36 +15,9 @@ import numpy as np
 from orchestrator.components.base import LearnerActor, compiled, learner_device
 from orchestrator.schema import Config
 from orchestrator.world import seed_of
-from workers.learners.ppo import PPOLearner, Rollout
+from workers.learners.ppo import PPOLearner, ppo_rollout
 from workers.models.actor_critic import HelperLayout
 from workers.types import Trajectory
-
-
-def rollout_of(trajs: tuple[Trajectory, ...], rewards: list[np.ndarray] | None) -> Rollout:
-    """The workers' trajectories side by side (environments concatenated) as one PPO rollout [T, ΣM]."""
-
-    def cat(key: str) -> np.ndarray:
-        return np.concatenate([tr.extras[key] for tr in trajs], axis=1)
-
-    obs = cat("obs")
-    final = np.zeros_like(obs)
-    offset = 0
-    for tr in trajs:
-        rows = tr.extras["final_rows"]
-        final[rows[:, 0], offset + rows[:, 1]] = tr.extras["final_obs"]
-        offset += tr.done.shape[1]
-    reward = np.concatenate(rewards, axis=1) if rewards is not None else cat("reward")
-    return Rollout(
-        obs=obs,
-        actions=cat("action"),  # the policy's samples (PD targets, or offsets for a residual policy)
-        log_probs=cat("log_prob"),
-        rewards=reward,
-        dones=np.concatenate([tr.done for tr in trajs], axis=1).astype(np.float32),
-        last_obs=np.concatenate([tr.extras["last_obs"] for tr in trajs], axis=0),
-        values=None,  # V(o) of the whole rollout in one batch, by the learner before it updates
-        truncated=cat("truncated").astype(np.float32),
-        final_obs=final,
-    )
 
 
 class PPOActor(LearnerActor):
@@ -58,7 +31,7 @@ class PPOActor(LearnerActor):
         self.running_length: np.ndarray | None = None
 
     def train(self, *trajs: Trajectory, rewards: list[np.ndarray] | None = None) -> dict[str, Any]:
-        rollout = rollout_of(trajs, rewards)
+        rollout = ppo_rollout(trajs, rewards)
         lag = self.learner.version - min(tr.version for tr in trajs)  # 0 when collection is synchronous
         metrics = self.learner.train_on_rollout(rollout)
         metrics.update(self._episodes(np.asarray(rollout.rewards), np.asarray(rollout.dones) > 0))

@@ -52,6 +52,6 @@ def test_amp_discriminator_separates_the_clip_and_the_policy_raises_its_style_re
         fixed = [trainer.step() for _ in range(20)]
     finally:
         rt.shutdown()
-    style = [m["disc/style_reward"] for m in fixed]
+    style = [m["disc/reward/style"] for m in fixed]
     assert np.mean(style[-3:]) > 1.3 * np.mean(style[:3]), style
     assert fixed[-1]["ppo/version"] > learning[-1]["ppo/version"]

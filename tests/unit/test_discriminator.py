@@ -334,3 +334,17 @@ def test_same_seed_same_learner():
     for i in range(3):
         assert a.update(random_batch(i)) == b.update(random_batch(i))
     assert_same_state(module_state(a), module_state(b))
+
+
+def test_amps_reward_mix_by_hand_with_its_named_terms():
+    from workers.learners.discriminator import amp_reward
+
+    style = np.array([[0.2, 1.0], [0.0, 0.5]], np.float32)
+    task = np.array([[1.0, 0.0], [0.5, 0.5]], np.float32)
+    total, terms = amp_reward(style, task, task_weight=0.5, style_weight=0.5)  # AMP Eq. 4, w_G = w_S = 0.5
+    np.testing.assert_allclose(total, [[0.6, 0.5], [0.25, 0.5]], rtol=1e-6)
+    assert total.dtype == np.float32 and set(terms) == {"style", "task", "total"}
+    np.testing.assert_array_equal(terms["style"], style)
+    only_style, terms = amp_reward(style, None, task_weight=0.0, style_weight=1.0)  # imitation only
+    np.testing.assert_array_equal(only_style, style)
+    np.testing.assert_array_equal(terms["task"], np.zeros_like(style))

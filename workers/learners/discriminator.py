@@ -7,7 +7,9 @@ mixes the fresh batch with transitions replayed from past updates (AMP's
 discriminator replay buffer B), which keeps the discriminator from
 overfitting to the latest policy.
 
-`reward` turns the discriminator into the policy's style reward (Eq. 7).
+`reward` turns the discriminator into the policy's style reward (Eq. 7), and `amp_reward` mixes it with a task
+reward (Eq. 4). The data: every pair of consecutive reference frames (`reference_transitions`) against the
+policy's (`policy_transitions`), each as (Φ(s), Φ(s')).
 
 Checkpoints: `state_dict()` holds the network (with its normaliser), the
 optimiser and the counters, not the replay or its sampler; a resumed learner
@@ -22,6 +24,8 @@ from typing import Any
 import numpy as np
 import torch
 
+from workers.body.character import Character
+from workers.body.features import amp_features
 from workers.learners.base import Learner, all_finite, cpu_seeded, make_optimizer
 from workers.losses.discriminator import (
     check_loss_type,
@@ -31,6 +35,8 @@ from workers.losses.discriminator import (
     style_reward,
 )
 from workers.models.discriminator import Discriminator
+from workers.motion.library import MotionLibrary
+from workers.types import Trajectory
 
 GP_ON = ("data", "data_and_policy")
 GP_FEATURES = ("normalised", "raw")
@@ -288,3 +294,32 @@ class DiscriminatorLearner(Learner):
 
     def _skill(self, x: Any) -> torch.Tensor | None:
         return None if x is None else torch.as_tensor(x, dtype=torch.long, device=self.device)
+
+
+def reference_transitions(character: Character, library: MotionLibrary) -> np.ndarray:
+    """Every consecutive pair of reference frames as (Φ(s), Φ(s')) [N, 2·amp_dim] (looping clips wrap)."""
+    clips, frames = [], []
+    for c, n in enumerate(library.num_frames):
+        last = n if library.loop[c] else n - 1
+        clips.append(np.full(last, c))
+        frames.append(np.arange(last))
+    clip, frame = np.concatenate(clips), np.concatenate(frames)
+    before = amp_features(character, library.state(clip, frame))
+    after = amp_features(character, library.state(clip, frame + 1))
+    return np.concatenate((before, after), axis=1)
+
+
+def policy_transitions(tr: Trajectory) -> np.ndarray:
+    """(Φ(s), Φ(s')) [T·M, 2·amp_dim] of a trajectory, time-major (the rollout worker records Φ: `AMPFeatures`)."""
+    before, after = tr.extras["amp_obs"], tr.extras["amp_next_obs"]
+    return np.concatenate((before, after), axis=-1).reshape(-1, 2 * before.shape[-1])
+
+
+def amp_reward(
+    style: np.ndarray, task: np.ndarray | None, task_weight: float, style_weight: float
+) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """AMP Eq. 4, r = w_G·r_G + w_S·r_S, of style rewards [T, M] and task rewards (None: none, 0); (r as float32,
+    its named terms {"style", "task", "total"})."""
+    task = np.zeros_like(style) if task is None else task
+    total = (task_weight * task + style_weight * style).astype(np.float32)
+    return total, {"style": style, "task": task, "total": total}

@@ -25,6 +25,7 @@ import torch
 from workers.learners.base import Learner, all_finite, cpu_seeded, make_optimizer
 from workers.losses.ppo import action_bound_loss, compute_gae, ppo_loss
 from workers.models.actor_critic import ActorCritic, HelperActorCritic, HelperLayout
+from workers.types import Trajectory
 
 
 @dataclass
@@ -297,3 +298,30 @@ class PPOLearner(Learner):
 
     def _tensor(self, x: Any) -> torch.Tensor | None:
         return None if x is None else self.tensor(x)
+
+
+def ppo_rollout(trajs: tuple[Trajectory, ...], rewards: list[np.ndarray] | None) -> Rollout:
+    """The workers' trajectories side by side (environments concatenated) as one PPO rollout [T, ΣM]."""
+
+    def cat(key: str) -> np.ndarray:
+        return np.concatenate([tr.extras[key] for tr in trajs], axis=1)
+
+    obs = cat("obs")
+    final = np.zeros_like(obs)
+    offset = 0
+    for tr in trajs:
+        rows = tr.extras["final_rows"]
+        final[rows[:, 0], offset + rows[:, 1]] = tr.extras["final_obs"]
+        offset += tr.done.shape[1]
+    reward = np.concatenate(rewards, axis=1) if rewards is not None else cat("reward")
+    return Rollout(
+        obs=obs,
+        actions=cat("action"),  # the policy's samples (PD targets, or offsets for a residual policy)
+        log_probs=cat("log_prob"),
+        rewards=reward,
+        dones=np.concatenate([tr.done for tr in trajs], axis=1).astype(np.float32),
+        last_obs=np.concatenate([tr.extras["last_obs"] for tr in trajs], axis=0),
+        values=None,  # V(o) of the whole rollout in one batch, by the learner before it updates
+        truncated=cat("truncated").astype(np.float32),
+        final_obs=final,
+    )
