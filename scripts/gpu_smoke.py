@@ -152,7 +152,7 @@ def tracking_on_warp(device: str) -> str:
 
     character, library = character_and_clip()
     controller = build_controller(character.num_bodies, character.num_actions, VAEConfig(latent_dim=16)).eval()
-    result = tracking_error(controller, library, character, 0.5, SimConfig(backend="warp", device=device))
+    result = tracking_error(controller, character, library, 0.5, SimConfig(backend="warp", device=device))
     value = next(iter(result.values()))
     return f"a CPU controller on a Warp simulator on {device}: {len(result)} values, first {value:.3g}"
 

@@ -60,7 +60,7 @@ mine = ("tracking=", *(("algo.loop.iterations=",) if iterations else ()))
 OVERRIDES = [o for o in TEST if not o.startswith(mine)] + ["tracking=off"]
 OVERRIDES += [f"algo.loop.iterations={iterations}"] if iterations else []
 
-def from_starts(controller, library, character, sim_config):
+def from_starts(controller, character, library, sim_config):
     config = without_tracking_termination(sim_config)
     frames = np.linspace(0, int(library.num_frames[0]) - 1, starts, endpoint=False).astype(int)
     steps = int(round(config.control_hz))  # one second
@@ -80,8 +80,8 @@ with TemporaryDirectory() as tmp:
         torch.manual_seed(0)
         untrained = build_controller(character.num_bodies, character.num_actions, cfg.algo.vae)
     sc = evaluation_sim_config(cfg)
-    before = (tracking_error(untrained, library, character, 1.0, sc, seed=cfg.seed)["mean"],
-              from_starts(untrained, library, character, sc))
+    before = (tracking_error(untrained, character, library, 1.0, sc, seed=cfg.seed)["mean"],
+              from_starts(untrained, character, library, sc))
     runtime, trainer = untracked_trainer(cfg)
     try:
         trainer.method.start(trainer)
@@ -93,8 +93,8 @@ with TemporaryDirectory() as tmp:
         runtime.shutdown()
     trained = build_controller(character.num_bodies, character.num_actions, cfg.algo.vae)
     trained.load_state_dict(weights.state)
-    after = (tracking_error(trained, library, character, 1.0, sc, seed=cfg.seed)["mean"],
-             from_starts(trained, library, character, sc))
+    after = (tracking_error(trained, character, library, 1.0, sc, seed=cfg.seed)["mean"],
+             from_starts(trained, character, library, sc))
     row = {"seed": seed, "mode": mode, "test": after[0] / before[0], "starts": after[1] / before[1],
            "test_m": [before[0], after[0]], "starts_m": [before[1], after[1]]}
     print("RESULT " + json.dumps(row))

@@ -39,7 +39,7 @@ def evaluate(controller, character, library, cfg, sim_config, seed: int) -> dict
     fall = time_until_fall(
         controller, character, library, e.fall_rollouts, e.fall_max_seconds, sim_config=sim_config, seed=seed
     )
-    track = tracking_error(controller, library, character, e.tracking_seconds, sim_config=sim_config, seed=seed)
+    track = tracking_error(controller, character, library, e.tracking_seconds, sim_config=sim_config, seed=seed)
     return {"time_until_fall": fall["mean"], "tracking_error": track["mean"]}
 
 

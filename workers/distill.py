@@ -23,8 +23,8 @@ from workers.rewards import imitation_observation
 
 def teacher_actions(
     module: ActorCritic,
-    library: MotionLibrary,
     character: Character,
+    library: MotionLibrary,
     states: np.ndarray,
     clip_id: np.ndarray | int,
     frame: np.ndarray | int,

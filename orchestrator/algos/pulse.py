@@ -108,7 +108,7 @@ class Pulse(ReplayFed):
         teacher = self.teacher.state
         module = expert_module(teacher, character.num_bodies, character.num_actions)
         labels = teacher_actions(
-            module, library, character, states, clips, frames, teacher["residual"], teacher["observation"]
+            module, character, library, states, clips, frames, teacher["residual"], teacher["observation"]
         )
         metrics = {
             "eval/success_rate_pulse": float(track["success_rate_pulse"]),

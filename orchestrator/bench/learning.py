@@ -44,7 +44,7 @@ def evaluate(cfg, character, library, weights, fall_rollouts: int) -> dict[str, 
     controller = build_controller(character.num_bodies, character.num_actions, cfg.algo.vae)
     controller.load_state_dict(weights.state)
     track = tracking_error(
-        controller, library, character, cfg.eval.tracking_seconds, evaluation_sim_config(cfg), cfg.seed
+        controller, character, library, cfg.eval.tracking_seconds, evaluation_sim_config(cfg), cfg.seed
     )
     fall = time_until_fall(
         controller, character, library, fall_rollouts, cfg.eval.fall_max_seconds, sim_config=evaluation_sim_config(cfg),

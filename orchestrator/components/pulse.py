@@ -39,8 +39,8 @@ class PulseActor(LearnerActor):
         n, steps = clip_id.shape
         flat = teacher_actions(
             self.teacher,
-            self.library,
             self.character,
+            self.library,
             states.reshape(n * steps, *states.shape[2:]),
             clip_id.reshape(-1),
             frame.reshape(-1),

@@ -108,8 +108,8 @@ def _controller_protocols(
     with progress.phase("tracking"):
         track = tracking_error(
             controller,
-            library,
             character,
+            library,
             clip_seconds=cfg.eval.tracking_seconds,
             sim_config=evaluation_sim_config(cfg),
             seed=cfg.seed,

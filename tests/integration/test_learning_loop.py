@@ -42,7 +42,7 @@ def test_default_loop_improves_tracking_in_the_simulator(tmp_path):
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(0)
         untrained = build_controller(character.num_bodies, character.num_actions, cfg.algo.vae)
-    before = tracking_error(untrained, library, character, 1.0, evaluation_sim_config(cfg), seed=cfg.seed)["mean"]
+    before = tracking_error(untrained, character, library, 1.0, evaluation_sim_config(cfg), seed=cfg.seed)["mean"]
 
     summary = run(cfg)
     after = summary["eval/tracking_error_mean"]

@@ -171,7 +171,7 @@ def _evaluations():
 
     return [
         ("time_until_fall", lambda c, ch, lib, sc: protocols.time_until_fall(c, ch, lib, 3, 0.4, sim_config=sc)),
-        ("tracking_error", lambda c, ch, lib, sc: protocols.tracking_error(c, lib, ch, 0.2, sim_config=sc)),
+        ("tracking_error", lambda c, ch, lib, sc: protocols.tracking_error(c, ch, lib, 0.2, sim_config=sc)),
         ("random_sampling", lambda c, ch, lib, sc: protocols.random_sampling(c, ch, lib, 3, 0.2, sim_config=sc)),
         ("tracking_success", success),
         ("record_fall_rollouts", lambda c, ch, lib, sc: [r.qpos for r in record_fall_rollouts(c, ch, lib, 2, 0.3, sc)]),
@@ -241,10 +241,10 @@ def test_the_tracking_evaluations_on_warps_cpu_device_with_the_controller_on_the
 
     warp = SimConfig(backend="warp", device="cpu")
     controller = _controller(character)
-    want = [tracking_error(controller, walk_run, character, 0.2, warp)["mean"],
+    want = [tracking_error(controller, character, walk_run, 0.2, warp)["mean"],
             time_until_fall(controller, character, walk_run, 2, 0.2, sim_config=warp)["times"]]  # fmt: skip
     with stand_in_gpu():
         controller.to(DEVICE)
-        got = [tracking_error(controller, walk_run, character, 0.2, warp)["mean"],
+        got = [tracking_error(controller, character, walk_run, 0.2, warp)["mean"],
                time_until_fall(controller, character, walk_run, 2, 0.2, sim_config=warp)["times"]]  # fmt: skip
     np.testing.assert_allclose(np.hstack(got), np.hstack(want), rtol=1e-5, atol=1e-6)

@@ -57,18 +57,18 @@ def test_teacher_actions_equal_the_policys_mean_action_in_one_batch(character, w
         bs = body_state.pack(sim.step(want[-1]).kin)
     states, clips, frames = np.concatenate(states), np.concatenate(clips), np.concatenate(frames)
     module.train()
-    got = teacher_actions(module, walk_run, character, states, clips, frames, observation=observation)
+    got = teacher_actions(module, character, walk_run, states, clips, frames, observation=observation)
     assert got.shape == (20, sim.action_dim) and got.dtype == np.float32
     np.testing.assert_allclose(got, np.concatenate(want), atol=1e-5)
-    got_plain = teacher_actions(module, walk_run, character, states, clips, frames, False, observation)
+    got_plain = teacher_actions(module, character, walk_run, states, clips, frames, False, observation)
     np.testing.assert_allclose(got_plain, np.concatenate(want_plain), atol=1e-5)
     assert np.abs(got - got_plain).max() > 0.1  # the residual base is really added
     assert module.training  # the module's mode is restored
     # One clip and frame for all rows broadcast.
-    one = teacher_actions(module, walk_run, character, states[:1], int(clips[0]), int(frames[0]), True, observation)
+    one = teacher_actions(module, character, walk_run, states[:1], int(clips[0]), int(frames[0]), True, observation)
     np.testing.assert_allclose(one, got[:1], atol=1e-6)
     with pytest.raises(ValueError, match="body states"):
-        teacher_actions(module, walk_run, character, states[0], clips[0], frames[0])
+        teacher_actions(module, character, walk_run, states[0], clips[0], frames[0])
 
 
 def test_tracking_steps_by_hand():

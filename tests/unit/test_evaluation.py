@@ -127,7 +127,7 @@ def test_tracking_error_of_the_reference_is_small_and_of_an_untrained_controller
         sim.set_state(np.arange(sim.num_envs), ref.qpos, np.zeros_like(ref.qvel))
         return pd(sim)
 
-    near = tracking_error(None, walk_run, character, clip_seconds=1.0, policy=hold)
+    near = tracking_error(None, character, walk_run, clip_seconds=1.0, policy=hold)
     assert set(near) == {"humanoid3d_walk", "humanoid3d_run", "mean", "segments"}
     assert near["humanoid3d_walk"] < 0.003 and near["humanoid3d_run"] < 0.003
     # 1-second segments: the walk's 38 frames make two (from frames 0 and 30), the run's 24 one; every
@@ -136,11 +136,11 @@ def test_tracking_error_of_the_reference_is_small_and_of_an_untrained_controller
     assert near["mean"] == pytest.approx((2 * near["humanoid3d_walk"] + near["humanoid3d_run"]) / 3)
     # The untrained controller holds a T-pose and falls: tens of centimetres (measured 0.34 and 0.41 m).
     c = controller(character)
-    far = tracking_error(c, walk_run, character, clip_seconds=2.0)
+    far = tracking_error(c, character, walk_run, clip_seconds=2.0)
     assert far["humanoid3d_walk"] > 0.15 and far["humanoid3d_run"] > 0.15
-    assert far == tracking_error(c, walk_run, character, clip_seconds=2.0)
+    assert far == tracking_error(c, character, walk_run, clip_seconds=2.0)
     with pytest.raises(ValueError, match="controller or a policy"):
-        tracking_error(None, walk_run, character)
+        tracking_error(None, character, walk_run)
 
 
 def test_tracking_segments_divide_every_clip_into_consecutive_pieces(character, walk_run):
@@ -161,7 +161,7 @@ def test_tracking_segments_divide_every_clip_into_consecutive_pieces(character, 
         sim.set_state(np.arange(sim.num_envs), ref.qpos, np.zeros_like(ref.qvel))
         return pd(sim)
 
-    out = tracking_error(None, lib, character, clip_seconds=1 / 3, policy=hold)
+    out = tracking_error(None, character, lib, clip_seconds=1 / 3, policy=hold)
     assert out["segments"] == 8
     assert out["humanoid3d_walk"] < 0.003 and out["walk_once"] < 0.003
     # Frames 0-37 are tracked alike by both; the cyclic clip's last segment goes on to frames 38-39 (the next

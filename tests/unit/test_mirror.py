@@ -148,8 +148,8 @@ def test_a_mirrored_clip_scores_what_the_reflected_controller_scores_on_the_orig
         target = lib.state(sim.clip_id, sim.start_frame + sim.steps + 1)
         return character.qpos_to_action(target.qpos) + offset[perm] * sign
 
-    plain = tracking_error(None, lib, character, clip_seconds=0.5, policy=lopsided)
-    mirrored = tracking_error(None, lib, character, clip_seconds=0.5, policy=reflected)
+    plain = tracking_error(None, character, lib, clip_seconds=0.5, policy=lopsided)
+    mirrored = tracking_error(None, character, lib, clip_seconds=0.5, policy=reflected)
     assert abs(plain["humanoid3d_walk"] - plain["humanoid3d_walk_mirror"]) > 1e-3
     assert mirrored["humanoid3d_walk"] == pytest.approx(plain["humanoid3d_walk_mirror"], abs=1e-9)
     assert mirrored["humanoid3d_walk_mirror"] == pytest.approx(plain["humanoid3d_walk"], abs=1e-9)

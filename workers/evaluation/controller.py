@@ -165,8 +165,8 @@ def tracking_segments(library: MotionLibrary, seconds: float, control_hz: float)
 
 def tracking_error(
     controller: VAEController | None,
-    library: MotionLibrary,
     character: Character,
+    library: MotionLibrary,
     clip_seconds: float = 2.0,
     sim_config: SimConfig | None = None,
     seed: int = 0,
