@@ -29,7 +29,8 @@ from workers.models import body_state
 from workers.models.nets import evaluation_mode, gaussian
 from workers.models.vae import VAEController
 from workers.motion.library import MotionLibrary
-from workers.sim.env import SimConfig, Simulator, make_sim, without_tracking_termination
+from workers.sim.env import SimConfig, Simulator, StepResult, make_sim, without_tracking_termination
+from workers.sim.episodes import run_episodes
 
 DEFAULT_START_CLIP = "humanoid3d_walk"
 
@@ -124,12 +125,13 @@ def time_until_fall(
     dt = 1.0 / config.control_hz
     max_steps = int(round(max_seconds * config.control_hz))
     fall_step = np.zeros(num_rollouts, int)  # 0: has not fallen
+
+    def after(t: int, result: StepResult) -> bool:
+        fall_step[(fall_step == 0) & result.fell] = t
+        return bool((fall_step > 0).all())
+
     with evaluation_mode(controller):
-        for t in range(1, max_steps + 1):
-            result = sim.step(prior_action(controller, sim, generator))
-            fall_step[(fall_step == 0) & result.fell] = t
-            if (fall_step > 0).all():
-                break
+        run_episodes(sim, lambda sim, _: prior_action(controller, sim, generator), max_steps, after, states=False)
     times = np.where(fall_step > 0, fall_step * dt, max_seconds)
     return {
         "mean": float(times.mean()),
@@ -192,12 +194,16 @@ def tracking_error(
     sim = make_sim(character, library, n, config, seed=seed)
     sim.reset(np.arange(n), clips, starts)
     total = np.zeros(n)
+
+    def act(sim: Simulator, _: None) -> np.ndarray:
+        return policy(sim) if policy is not None else posterior_mean_action(controller, sim)
+
+    def after(t: int, result: StepResult) -> None:
+        err = relative_position_error(result.kin.xpos, sim.reference_state().xpos)
+        total[:] += np.where(t - 1 < steps, err, 0.0)
+
     with evaluation_mode(controller):
-        for t in range(int(steps.max())):
-            actions = np.asarray(policy(sim)) if policy is not None else posterior_mean_action(controller, sim)
-            result = sim.step(actions)
-            err = relative_position_error(result.kin.xpos, sim.reference_state().xpos)
-            total += np.where(t < steps, err, 0.0)
+        run_episodes(sim, act, int(steps.max()), after, states=False)
     out = {name: float(total[clips == c].sum() / steps[clips == c].sum()) for c, name in enumerate(library.names)}
     out["mean"] = float(total.sum() / steps.sum())
     out["segments"] = float(n)
@@ -240,11 +246,13 @@ def random_sampling(
     roots = np.empty((steps + 1, num_rollouts, 2))
     roots[0] = sim.kin_state().xpos[:, 0, :2]
     fell = np.zeros(num_rollouts, bool)
+
+    def after(t: int, result: StepResult) -> None:
+        fell[:] |= result.fell
+        roots[t] = result.kin.xpos[:, 0, :2]
+
     with evaluation_mode(controller):
-        for t in range(steps):
-            result = sim.step(prior_action(controller, sim, generator))
-            fell |= result.fell
-            roots[t + 1] = result.kin.xpos[:, 0, :2]
+        run_episodes(sim, lambda sim, _: prior_action(controller, sim, generator), steps, after, states=False)
     roots = np.swapaxes(roots - roots[:1], 0, 1)
     return {
         "fell": float(fell.mean()),

@@ -20,19 +20,15 @@ growing per-frame error.
 
 from __future__ import annotations
 
-from collections.abc import Callable
-
 import numpy as np
 
 from workers.body.character import Character
 from workers.body.features import heading_inverse
 from workers.evaluation.pose_error import dtw_pose_error, eq10_dtw_pose_error, per_frame_pose_error, relative_positions
 from workers.motion.library import MotionLibrary
-from workers.sim.env import SimConfig, Simulator, make_sim, without_tracking_termination
+from workers.sim.env import SimConfig, Simulator, StepResult, make_sim, without_tracking_termination
+from workers.sim.episodes import Actor, run_episodes
 from workers.types import KinState
-
-# Maps the simulator and the environments' body states [M, B, 13] to actions [M, A].
-Actor = Callable[[Simulator, np.ndarray], np.ndarray]
 
 
 def _relative(kin: KinState) -> np.ndarray:
@@ -64,16 +60,15 @@ def pose_error_episodes(
     sim_xpos = np.zeros((steps, num_episodes, character.num_bodies, 3))  # for Eq. 10 as written
     alive = np.ones(num_episodes, bool)
     length = np.zeros(num_episodes, int)
-    bs = sim.body_states()
-    for t in range(steps):
-        result = sim.step(act(sim, bs))
-        sim_pos[t] = _relative(result.kin)
-        sim_xpos[t] = result.kin.xpos
+
+    def after(t: int, result: StepResult) -> bool:
+        sim_pos[t - 1] = _relative(result.kin)
+        sim_xpos[t - 1] = result.kin.xpos
         length[alive] += 1
-        alive &= ~(result.fell | result.clip_ended)
-        if not alive.any():
-            break
-        bs = result.body_states
+        alive[:] &= ~(result.fell | result.clip_ended)
+        return not alive.any()
+
+    run_episodes(sim, act, steps, after)
     episodes, curves = [], []
     for e in range(num_episodes):
         n = int(length[e])

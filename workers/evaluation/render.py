@@ -33,7 +33,7 @@ if TYPE_CHECKING:
     from workers.body.character import Character
     from workers.models.vae import VAEController
     from workers.motion.library import MotionLibrary
-    from workers.sim.env import SimConfig, Simulator
+    from workers.sim.env import SimConfig, Simulator, StepResult
 
 # The camera: distance (m), azimuth and elevation (degrees; azimuth 90 looks along +y, a side view of
 # the clips, which walk along x), and the height (m) it looks at, fixed so that a fall stays in frame.
@@ -86,6 +86,7 @@ def record_fall_rollouts(
     from workers.evaluation.controller import fall_start, prior_action
     from workers.models.nets import evaluation_mode
     from workers.sim.env import make_sim, without_tracking_termination
+    from workers.sim.episodes import run_episodes
 
     if num_rollouts < 1:
         return []
@@ -98,13 +99,14 @@ def record_fall_rollouts(
     tail = int(round(FALL_TAIL_S * config.control_hz))
     qpos = [sim.kin_state().qpos]
     end = np.full(num_rollouts, steps)  # the last step shown
+
+    def after(t: int, result: StepResult) -> bool:
+        qpos.append(result.kin.qpos)
+        end[:] = np.where(result.fell & (end == steps), np.minimum(t + tail, steps), end)
+        return bool((t >= end).all())
+
     with evaluation_mode(controller):
-        for t in range(1, steps + 1):
-            result = sim.step(prior_action(controller, sim, generator))
-            qpos.append(result.kin.qpos)
-            end = np.where(result.fell & (end == steps), np.minimum(t + tail, steps), end)
-            if (t >= end).all():
-                break
+        run_episodes(sim, lambda sim, _: prior_action(controller, sim, generator), steps, after, states=False)
     poses = np.stack(qpos, axis=1)  # [R, T, nq]
     return [Recording(f"fall-{r}", poses[r, : end[r] + 1], model=sim.model) for r in range(num_rollouts)]
 
@@ -123,6 +125,7 @@ def record_tracking(
     from workers.evaluation.controller import fall_start, posterior_mean_action
     from workers.models.nets import evaluation_mode
     from workers.sim.env import make_sim, without_tracking_termination
+    from workers.sim.episodes import run_episodes
 
     config = without_tracking_termination(sim_config)
     c = library.clip_id(clip) if clip is not None else fall_start(library)[0]
@@ -130,11 +133,13 @@ def record_tracking(
     sim = make_sim(character, library, 1, config, seed=seed)
     sim.reset(np.zeros(1, int), np.array([c]), np.zeros(1, int))
     qpos, ref = [sim.kin_state().qpos[0]], [sim.reference_state().qpos[0]]
+
+    def after(t: int, result: StepResult) -> None:
+        qpos.append(result.kin.qpos[0])
+        ref.append(sim.reference_state().qpos[0])
+
     with evaluation_mode(controller):
-        for _ in range(steps):
-            result = sim.step(posterior_mean_action(controller, sim))
-            qpos.append(result.kin.qpos[0])
-            ref.append(sim.reference_state().qpos[0])
+        run_episodes(sim, lambda sim, _: posterior_mean_action(controller, sim), steps, after, states=False)
     return Recording(f"tracking-{_slug(library.names[c])}", np.stack(qpos), np.stack(ref), sim.model)
 
 
@@ -150,25 +155,25 @@ def record_policy_episode(
     start drawn by the simulator, with its reference, until `max_seconds`, `FALL_TAIL_S` after a fall or the
     clip's end."""
     from workers.sim.env import make_sim, without_tracking_termination
+    from workers.sim.episodes import run_episodes
 
     config = without_tracking_termination(sim_config)
     sim = make_sim(character, library, 1, config, seed=seed)
     steps = max(1, int(round(max_seconds * config.control_hz)))
     tail = int(round(FALL_TAIL_S * config.control_hz))
     qpos, ref = [sim.kin_state().qpos[0]], [sim.reference_state().qpos[0]]
-    bs = sim.body_states()
-    end = steps
-    for t in range(1, steps + 1):
-        result = sim.step(act(sim, bs))
+    end = [steps]
+
+    def after(t: int, result: StepResult) -> bool:
         qpos.append(result.kin.qpos[0])
         ref.append(sim.reference_state().qpos[0])
         if result.clip_ended[0]:
-            break
-        if result.fell[0] and end == steps:
-            end = min(t + tail, steps)
-        if t >= end:
-            break
-        bs = result.body_states
+            return True
+        if result.fell[0] and end[0] == steps:
+            end[0] = min(t + tail, steps)
+        return t >= end[0]
+
+    run_episodes(sim, act, steps, after)
     return Recording(f"policy-{_slug(library.names[int(sim.clip_id[0])])}", np.stack(qpos), np.stack(ref), sim.model)
 
 

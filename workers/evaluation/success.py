@@ -13,10 +13,10 @@ from __future__ import annotations
 import numpy as np
 
 from workers.body.character import Character
-from workers.evaluation.imitation import Actor
 from workers.evaluation.pose_error import relative_positions
 from workers.motion.library import MotionLibrary
-from workers.sim.env import SimConfig, make_sim, without_tracking_termination
+from workers.sim.env import SimConfig, StepResult, make_sim, without_tracking_termination
+from workers.sim.episodes import Actor, run_episodes
 
 
 def tracking_steps(library: MotionLibrary, control_hz: float, seconds: float | None = None) -> np.ndarray:
@@ -78,18 +78,18 @@ def tracking_success(
     sim.reset(clips, clips, np.zeros(n, int))
     global_sum, local_sum = np.zeros(n), np.zeros(n)
     max_joint, max_mean = np.zeros(n), np.zeros(n)  # worst e_j and worst mean_j e_j over the steps
-    bs = sim.body_states()
-    for t in range(int(steps.max())):
-        result = sim.step(np.asarray(act(sim, bs)))
+
+    def after(t: int, result: StepResult) -> None:
         ref = sim.reference_state()
         err = np.linalg.norm(result.kin.xpos - ref.xpos, axis=-1)  # [n, B]
         local = np.linalg.norm(relative_positions(result.kin.xpos) - relative_positions(ref.xpos), axis=-1)
-        active = t < steps
-        global_sum += np.where(active, err.mean(-1), 0.0)
-        local_sum += np.where(active, local.mean(-1), 0.0)
-        max_joint = np.where(active, np.maximum(max_joint, err.max(-1)), max_joint)
-        max_mean = np.where(active, np.maximum(max_mean, err.mean(-1)), max_mean)
-        bs = result.body_states
+        active = t - 1 < steps
+        global_sum[:] += np.where(active, err.mean(-1), 0.0)
+        local_sum[:] += np.where(active, local.mean(-1), 0.0)
+        max_joint[:] = np.where(active, np.maximum(max_joint, err.max(-1)), max_joint)
+        max_mean[:] = np.where(active, np.maximum(max_mean, err.mean(-1)), max_mean)
+
+    run_episodes(sim, act, int(steps.max()), after)
     mpjpe = 1000.0 * global_sum / steps
     mpjpe_local = 1000.0 * local_sum / steps
     every_joint = max_joint <= threshold

@@ -32,7 +32,8 @@ import torch
 from workers.body.character import Character
 from workers.losses.task import task_loss
 from workers.motion.library import MotionLibrary
-from workers.sim.env import SimConfig, make_sim, without_tracking_termination
+from workers.sim.env import SimConfig, Simulator, StepResult, make_sim, without_tracking_termination
+from workers.sim.episodes import run_episodes
 from workers.task.goals import SuccessTracker
 from workers.task.policy import TaskRolloutPolicy
 
@@ -64,34 +65,40 @@ def evaluate_task_policy(
     curve = np.full(steps, np.nan)
     roots = np.full((steps + 1, num_goals, 2), np.nan)
     goals = np.zeros((steps, num_goals, policy.goals.goals.shape[1]), np.float32)
-    bs = sim.body_states()
-    roots[0] = bs[:, 0, :2]
+    roots[0] = sim.body_states()[:, 0, :2]
+    step: dict[str, np.ndarray] = {}  # this step's applied and decoded actions
+    asked = [0]  # the steps the actor has been asked for
+
+    def act(sim: Simulator, bs: np.ndarray) -> np.ndarray:
+        step["applied"], step["decoded"] = policy.actions(sim, bs)
+        goals[asked[0]] = policy.goals.goals  # the goals in force for this step
+        asked[0] += 1
+        return step["applied"]
+
+    def after(t: int, result: StepResult) -> bool:
+        i, bs = t - 1, result.body_states
+        goal = torch.from_numpy(policy.goals.goals)
+        total, terms = task_loss(task, torch.from_numpy(bs), goal, policy.config.weights, policy.config.fall_height)
+        r = np.exp(-(total - policy.config.weights.get("fall", 1.0) * terms["fall"]).numpy())
+        reward_sum[alive] += r[alive]
+        deviation_sum[alive] += np.abs(step["applied"] - step["decoded"]).mean(-1)[alive]
+        lived[alive] += 1
+        curve[i] = float(r[alive].mean()) if alive.any() else np.nan
+        for k, v in terms.items():
+            term_sums[k] = term_sums.get(k, 0.0) + float(v.numpy()[alive].sum())
+        in_force = policy.goals.goals.copy()
+        changed = policy.goals.advance(sim, bs)
+        success.update(bs, in_force, result.fell & alive, changed & alive)
+        if pulse is not None:
+            pulse.update(bs, in_force, result.fell & alive, changed & alive)
+        fell = alive & result.fell
+        fell_at[fell] = t
+        alive[:] &= ~result.fell
+        roots[t, alive] = bs[alive, 0, :2]
+        return not alive.any()
+
     try:
-        for t in range(steps):
-            applied, decoded = policy.actions(sim, bs)
-            goals[t] = policy.goals.goals
-            result = sim.step(applied)
-            bs = result.body_states
-            goal = torch.from_numpy(policy.goals.goals)
-            total, terms = task_loss(task, torch.from_numpy(bs), goal, policy.config.weights, policy.config.fall_height)
-            r = np.exp(-(total - policy.config.weights.get("fall", 1.0) * terms["fall"]).numpy())
-            reward_sum[alive] += r[alive]
-            deviation_sum[alive] += np.abs(applied - decoded).mean(-1)[alive]
-            lived[alive] += 1
-            curve[t] = float(r[alive].mean()) if alive.any() else np.nan
-            for k, v in terms.items():
-                term_sums[k] = term_sums.get(k, 0.0) + float(v.numpy()[alive].sum())
-            in_force = policy.goals.goals.copy()
-            changed = policy.goals.advance(sim, bs)
-            success.update(bs, in_force, result.fell & alive, changed & alive)
-            if pulse is not None:
-                pulse.update(bs, in_force, result.fell & alive, changed & alive)
-            fell = alive & result.fell
-            fell_at[fell] = t + 1
-            alive &= ~result.fell
-            roots[t + 1, alive] = bs[alive, 0, :2]
-            if not alive.any():
-                break
+        run_episodes(sim, act, steps, after)
     finally:
         policy.stochastic, policy.config = stochastic, trained
     ok = success.result(np.arange(num_goals))
