@@ -52,6 +52,7 @@ from workers.evaluation.controller import posterior_mean_action, tracking_error,
 from workers.models.nets import evaluation_mode
 from workers.learners.vae import build_controller
 from workers.sim.env import make_sim
+from workers.sim.episodes import run_episodes
 
 from tests.integration.test_learning_loop import OVERRIDES as TEST
 
@@ -67,10 +68,12 @@ def from_starts(controller, character, library, sim_config):
     sim = make_sim(character, library, starts, config, seed=0)
     sim.reset(np.arange(starts), np.zeros(starts, dtype=int), frames)
     total = np.zeros(starts)
+
+    def after(t, result):
+        total[:] += relative_position_error(result.kin.xpos, sim.reference_state().xpos)
+
     with evaluation_mode(controller):
-        for _ in range(steps):
-            result = sim.step(posterior_mean_action(controller, sim))
-            total += relative_position_error(result.kin.xpos, sim.reference_state().xpos)
+        run_episodes(sim, lambda sim, _: posterior_mean_action(controller, sim), steps, after, states=False)
     return float(total.mean() / steps)
 
 with TemporaryDirectory() as tmp:
