@@ -132,11 +132,9 @@ def validate(cfg: DictConfig | dict[str, Any], shipped_only: bool = False) -> Co
         if section not in method.sections:
             setattr(out.algo, section, None)
     _check_needs(out.algo, method)
-    if out.algo.pulse is not None and out.algo.pulse.prior_action and out.algo.vae.prior != "learned":
-        raise ConfigError(
-            f"algo.pulse.prior_action: a residual on the prior's mean (PULSE Eq. 4) needs algo.vae.prior=learned, "
-            f"got {out.algo.vae.prior!r} (set algo.pulse.prior_action=false)"
-        )
+    check = getattr(method, "check_config", None)  # the method's own rules between its sections
+    if check is not None:
+        check(out.algo)
     return out
 
 

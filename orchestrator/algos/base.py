@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Protocol
 
 from orchestrator.compose import find_method
-from orchestrator.schema import Config
+from orchestrator.schema import AlgoConfig, Config
 from orchestrator.upstream import Upstream
 from orchestrator.world import collection_sim_config, load_character_and_library
 
@@ -118,6 +118,11 @@ class Method:
         self.character = character
         self.upstream = dict(upstream or {})
         self._loaded: tuple[Character, MotionLibrary] | None = None
+
+    @classmethod
+    def check_config(cls, algo: AlgoConfig) -> None:
+        """A rule between the method's own sections that no one section can check alone; raises ConfigError
+        naming the key (`compose.validate` calls it, the unused sections already None). None by default."""
 
     @classmethod
     def needs_of(cls, cfg: Config) -> dict[str, str]:

@@ -28,6 +28,7 @@ from orchestrator.algos.base import Component, ReplayFed, UpdateSchedule
 from orchestrator.components.pulse import PulseActor
 from orchestrator.components.replay import ReplayActor
 from orchestrator.evaluation.protocols import evaluate_controller
+from orchestrator.schema import AlgoConfig, ConfigError
 from orchestrator.upstream import expert_weights
 from orchestrator.world import evaluation_sim_config
 from workers.distill import teacher_actions
@@ -41,6 +42,14 @@ class Pulse(ReplayFed):
     sections = ("vae", "pulse")
     replay_buffers = 1
     needs = ("expert",)
+
+    @classmethod
+    def check_config(cls, algo: AlgoConfig) -> None:
+        if algo.pulse.prior_action and algo.vae.prior != "learned":
+            raise ConfigError(
+                f"algo.pulse.prior_action: a residual on the prior's mean (PULSE Eq. 4) needs algo.vae.prior=learned, "
+                f"got {algo.vae.prior!r} (set algo.pulse.prior_action=false)"
+            )
 
     def __init__(self, cfg, character, upstream=None):
         super().__init__(cfg, character, upstream)
