@@ -208,7 +208,7 @@ def gpu_shares(cfg: Config, character: Character) -> None:
     """ConfigError when the learners' GPUs as set (`runtime.learner_gpus`) leave the rollout workers' simulator on
     the GPU no share of one (`orchestrator.runtime.base.worker_gpus`), for a method whose learners are known
     before its upstream stages are."""
-    cls = method_class(cfg.algo._target_)
+    cls = method_class(cfg)
     if cls.needs or not cls.uses_workers:
         return
     components = cls(cfg, character, None).components()  # descriptors only: nothing is built
@@ -245,7 +245,7 @@ def replay_memory(cfg: Config, character: Character) -> None:
     """ConfigError when the method's replay buffers (`algo.loop.replay_capacity` transitions each), with the copy a
     checkpoint makes of them, would take more than this machine's available memory; not for a cluster's run
     (`runtime.address`), whose buffer lives on a node this process cannot see."""
-    buffers = method_class(cfg.algo._target_).replay_buffers
+    buffers = method_class(cfg).replay_buffers
     if not buffers or cfg.runtime.address:
         return
     capacity = cfg.algo.loop.replay_capacity
@@ -316,7 +316,7 @@ def resume_checkpoint(cfg: Config, character: Character, log: Callable[[str], No
     paths = checkpoint.newest_first(Path(cfg.run_dir) / "checkpoints")
     if not paths:
         return None
-    method = method_class(cfg.algo._target_)(cfg, character, None)
+    method = method_class(cfg)(cfg, character, None)
     components = [] if method.needs else method.components()  # with upstream stages: built later, from them
     targets = None
     errors: list[checkpoint.CheckpointError] = []

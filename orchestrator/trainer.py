@@ -56,7 +56,7 @@ class Trainer:
         self.character = character
         self.state = checkpoint.LoopState()
         self.ckpt_dir = Path(cfg.run_dir) / "checkpoints"
-        self.method: Method = method_class(cfg.algo._target_)(cfg, character, upstream)
+        self.method: Method = method_class(cfg)(cfg, character, upstream)
         r = cfg.runtime
         num_workers = r.rollout_workers if self.method.uses_workers else 0
         components = self.method.components()

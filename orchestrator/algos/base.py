@@ -120,6 +120,12 @@ class Method:
         self._loaded: tuple[Character, MotionLibrary] | None = None
 
     @classmethod
+    def variant(cls, cfg: Config) -> type[Method]:
+        """The class that runs `cfg`, where a setting of the method picks another loop (the task policy's
+        `algo.task.trainer=ppo`: PPO's); this class by default."""
+        return cls
+
+    @classmethod
     def check_config(cls, algo: AlgoConfig) -> None:
         """A rule between the method's own sections that no one section can check alone; raises ConfigError
         naming the key (`compose.validate` calls it, the unused sections already None). None by default."""
@@ -257,9 +263,10 @@ class ReplayFed(Method):
         trainer.runtime.get(self.pending)  # let the last collection finish before the final checkpoint
 
 
-def method_class(target: str) -> type[Method]:
-    """The method class named by `algo._target_`."""
-    cls = find_method(target)
+def method_class(cfg: Config) -> type[Method]:
+    """The method class that runs `cfg`: the one `algo._target_` names, or the variant it picks for this config
+    (`Method.variant`)."""
+    cls = find_method(cfg.algo._target_)
     if not issubclass(cls, Method):
-        raise TypeError(f"{target} is not a method (a subclass of orchestrator.algos.base.Method)")
-    return cls
+        raise TypeError(f"{cfg.algo._target_} is not a method (a subclass of orchestrator.algos.base.Method)")
+    return cls.variant(cfg)

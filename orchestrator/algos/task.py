@@ -20,7 +20,7 @@ reward e^(−L_g) of the state each step reaches, episodes ending early on a fal
 actor-critic sees the state and the goal; its action is the latent offset on the frozen prior's
 mean and, with σ > 0, the helper branch's pre-activation (`workers.task.policy.TaskPPOPolicy`);
 its exploration is the fixed std `algo.ppo.action_std` (PULSE: 0.22 in latent units).
-`algo=task` builds a `Task`, which is a `TaskPPO` when `algo.task.trainer=ppo`.
+`algo=task` names `Task`, whose `variant` is `TaskPPO` when `algo.task.trainer=ppo` (`method_class`).
 
 Evaluation (`orchestrator.evaluation.tasks`), the same for both trainers: the normalised return and success rate over a
 fixed set of goals, the style score (the applied action's deviation from the
@@ -80,10 +80,9 @@ class Task(SkillTask, ReplayFed):
     needs = ("skill",)
     learner_key = "task"
 
-    def __new__(cls, cfg, character, upstream=None):
-        if cls is Task and cfg.algo.task.trainer == "ppo":  # the other trainer is PPO's loop
-            return TaskPPO(cfg, character, upstream)
-        return super().__new__(cls)
+    @classmethod
+    def variant(cls, cfg) -> type[SkillTask]:
+        return TaskPPO if cfg.algo.task.trainer == "ppo" else cls  # the other trainer is PPO's loop
 
     def __init__(self, cfg, character, upstream=None):
         super().__init__(cfg, character, upstream)
@@ -96,8 +95,6 @@ class Task(SkillTask, ReplayFed):
 
     @classmethod
     def make_policy(cls, cfg, character) -> TaskRolloutPolicy:
-        if cfg.algo.task.trainer == "ppo":
-            return TaskPPO.make_policy(cfg, character)
         return TaskRolloutPolicy(character.num_bodies, character.num_actions, cfg.algo.task, cfg.character.control_hz)
 
     # The iteration -----------------------------------------------------------------

@@ -35,7 +35,7 @@ def test_every_group_option_composes_and_validates(group, option):
 @pytest.mark.parametrize(("algo", "scale"), [(a, s) for a in options("algo") for s in options("scale")])
 def test_every_method_composes_with_every_scale(algo, scale):
     cfg = validate(composed(f"algo={algo}", f"scale={scale}"))
-    method = method_class(cfg.algo._target_)
+    method = method_class(cfg)
     for section in SECTIONS:  # the method's sections are there, the others dropped
         assert (getattr(cfg.algo, section) is not None) == (section in method.sections), section
     assert (CONF / "algo_scale" / f"{algo}_{scale}.yaml").exists()
@@ -211,3 +211,19 @@ def test_the_task_presets_name_their_skill_stages():
         validate(composed("algo=task", "algo.task.trainer=mpc"))
     with pytest.raises(ConfigError, match="terrain.kind"):
         validate(composed("algo=task", "terrain.kind=sand"))
+
+
+def test_the_task_methods_ppo_trainer_is_its_variant_for_every_class_level_question(character):
+    """`algo=task algo.task.trainer=ppo` runs PPO's loop: the class the trainer builds, the policy its workers run
+    and the learner it reads are the PPO variant's, asked of the class (as preflight and the rollout actor do)
+    without building the method."""
+    from orchestrator.algos.task import Task, TaskPPO
+    from workers.task.policy import TaskPPOPolicy, TaskRolloutPolicy
+
+    model_cfg = validate(composed("algo=task", "scale=smoke"))
+    ppo_cfg = validate(composed("algo=task", "scale=smoke", "algo.task.trainer=ppo"))
+    model, ppo = method_class(model_cfg), method_class(ppo_cfg)
+    assert (model, ppo) == (Task, TaskPPO)
+    assert (model.learner_key, ppo.learner_key) == ("task", "ppo")
+    assert type(model.make_policy(model_cfg, character)) is TaskRolloutPolicy
+    assert type(ppo.make_policy(ppo_cfg, character)) is TaskPPOPolicy
