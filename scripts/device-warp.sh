@@ -23,9 +23,7 @@ PY="${PYTHON:-python3}"
 
 run_checks() {
     [ -f "$DIR/site.tar.xz" ] || { echo "$DIR/site.tar.xz was not carried: sh $0 prepare here, then carry it" >&2; exit 2; }
-    site=$(mktemp -d)
-    "$PY" -c "import sys, tarfile; tarfile.open(sys.argv[1]).extractall(sys.argv[2], filter='data')" \
-        "$DIR/site.tar.xz" "$site"
+    site=$(PYTHON="$PY" sh scripts/gpu-smoke.sh unpack)
     out="${OUT:-$site/out}"
     mkdir -p "$out"
     export PYTHONPATH="$site:." PYTHONUNBUFFERED=1 MOCAP_WARP_DEVICE="$DEVICE" MOCAP_MOTION_DIR="$site/motions"

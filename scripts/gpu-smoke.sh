@@ -72,12 +72,19 @@ EOF
     fi
 }
 
+# The carried packages unpacked into a new folder (Python's tarfile, a few seconds), whose path it prints; the
+# clips are its motions/. scripts/device-warp.sh unpacks them so too.
+unpack() {
+    site=$(mktemp -d)
+    "${PYTHON:-python3}" -c "import sys, tarfile; tarfile.open(sys.argv[1]).extractall(sys.argv[2], filter='data')" \
+        "$DIR/site.tar.xz" "$site"
+    echo "$site"
+}
+
 run() {
     PY="${PYTHON:-python3}"
     if [ -f "$DIR/site.tar.xz" ]; then
-        site=$(mktemp -d)
-        "$PY" -c "import sys, tarfile; tarfile.open(sys.argv[1]).extractall(sys.argv[2], filter='data')" \
-            "$DIR/site.tar.xz" "$site"
+        site=$(unpack)
         export PYTHONPATH="$site:." MOCAP_MOTION_DIR="$site/motions"
     else
         echo "SKIP packages: $DIR/site.tar.xz was not carried (sh scripts/gpu-smoke.sh prepare here, then carry it)"
@@ -90,6 +97,7 @@ run() {
 
 case "${1:-}" in
     prepare) prepare ;;
+    unpack) unpack ;;
     *)
         if [ "${DRY_RUN:-}" = cpu ]; then
             PY="${PYTHON:-}"
