@@ -67,16 +67,14 @@ def evaluate_task_policy(
     goals = np.zeros((steps, num_goals, policy.goals.goals.shape[1]), np.float32)
     roots[0] = sim.body_states()[:, 0, :2]
     step: dict[str, np.ndarray] = {}  # this step's applied and decoded actions
-    asked = [0]  # the steps the actor has been asked for
 
     def act(sim: Simulator, bs: np.ndarray) -> np.ndarray:
         step["applied"], step["decoded"] = policy.actions(sim, bs)
-        goals[asked[0]] = policy.goals.goals  # the goals in force for this step
-        asked[0] += 1
         return step["applied"]
 
     def after(t: int, result: StepResult) -> bool:
         i, bs = t - 1, result.body_states
+        goals[i] = policy.goals.goals  # those in force during the step (`advance` comes below)
         goal = torch.from_numpy(policy.goals.goals)
         total, terms = task_loss(task, torch.from_numpy(bs), goal, policy.config.weights, policy.config.fall_height)
         r = np.exp(-(total - policy.config.weights.get("fall", 1.0) * terms["fall"]).numpy())
