@@ -1,10 +1,11 @@
-"""YAML and overrides to a validated `Config`: Hydra composes `conf/`, the schema checks it, the method's sections stay.
+"""YAML and overrides to a validated `Config`: Hydra composes `conf/`, the schema and the method's own config check it.
 
 - `compose(overrides)`: conf/config.yaml with `overrides`, inside a running Hydra app or not
-  (upstream stages, benchmarks and tests compose this way);
-- `validate(cfg)`: the composed config as `orchestrator.schema` objects, or a `ConfigError` naming
-  the key of the first bad value. A method uses some of `algo`'s sections (`Method.sections`); a
-  section it does not use must stay at its defaults and is dropped (None);
+  (upstream stages, benchmarks and tests compose this way). `algo` is typed by the method's config
+  (`Method.config_class`), which conf/algo/<name>.yaml names in its defaults list as `<name>_schema`
+  (`register` stores one for each file), so that a key the method does not have is refused there;
+- `validate(cfg)`: the composed config as `orchestrator.schema` objects, `algo` as the method's config,
+  or a `ConfigError` naming the key of the first bad value;
 - `find_method(target)`: the method class that `algo._target_` names, found by its dotted path the
   way Hydra's `_target_` finds any class: no method module is imported here by name.
 """
@@ -13,13 +14,14 @@ from __future__ import annotations
 
 import importlib
 import math
+from dataclasses import fields
 from pathlib import Path
 from typing import Any
 
 from hydra.core.config_store import ConfigStore
 from omegaconf import DictConfig, OmegaConf
 
-from orchestrator.schema import SECTIONS, AlgoConfig, Config, ConfigError
+from orchestrator.schema import Config, ConfigError, MethodConfig, sections_of
 
 CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
 
@@ -39,10 +41,10 @@ def compose(overrides: list[str]) -> Any:
 
 def find_method(target: str) -> type:
     """The class `target` names ("package.module.Class"), if it is a method: it declares its config
-    `sections`, the upstream stages it `needs` and its `components`."""
+    (`config_class`), the upstream stages it `needs` and its `components`."""
     module, _, name = target.rpartition(".")
     cls = getattr(importlib.import_module(module), name, None) if module else None
-    if not (isinstance(cls, type) and all(hasattr(cls, a) for a in ("sections", "needs", "components", "step"))):
+    if not (isinstance(cls, type) and all(hasattr(cls, a) for a in ("config_class", "needs", "components", "step"))):
         raise TypeError(f"{target} is not a method (a subclass of orchestrator.algos.base.Method)")
     return cls
 
@@ -74,11 +76,17 @@ def register() -> None:
     # A map given whole on the command line (`motion.joint_map='{Hips: pelvis}'`) adds keys: open under struct mode.
     OmegaConf.set_struct(schema.motion.joint_map, False)
     cs.store(name="schema", node=schema)
+    for path, target in _shipped():  # conf/algo/<name>.yaml's defaults list names <name>_schema
+        cs.store(group="algo", name=f"{path.stem}_schema", node=find_method(target).config_class)
+
+
+def _shipped() -> list[tuple[Path, str]]:
+    return [(p, str(OmegaConf.load(p).get("_target_"))) for p in sorted((CONF_DIR / "algo").glob("*.yaml"))]
 
 
 def shipped_methods() -> set[str]:
     """The `algo._target_` of every method in conf/algo: all that a config read back from a store may name."""
-    return {str(OmegaConf.load(p).get("_target_")) for p in sorted((CONF_DIR / "algo").glob("*.yaml"))}
+    return {target for _, target in _shipped()}
 
 
 def _check_finite(node: Any, key: str = "") -> None:
@@ -107,19 +115,20 @@ def validate(cfg: DictConfig | dict[str, Any], shipped_only: bool = False) -> Co
         raise ConfigError(
             f"algo._target_: {target!r} is not one of the methods in conf/algo ({', '.join(sorted(methods))})"
         )
+    method = _method(target)
+    algo = cfg.get("algo")
+    if isinstance(algo, DictConfig):
+        _check_keys(algo, method, former=shipped_only)
+    schema = OmegaConf.structured(Config)
+    schema.algo = OmegaConf.structured(method.config_class)
     try:
-        structured = OmegaConf.merge(OmegaConf.structured(Config), cfg)
+        structured = OmegaConf.merge(schema, cfg)
     except Exception as e:  # OmegaConf's type errors name the full key
         raise ConfigError(str(e)) from None
     _check_finite(OmegaConf.to_container(structured, resolve=True))
-    method = _method(structured.algo)
-    for section, schema in SECTIONS.items():
-        node = structured.algo[section]
-        if section not in method.sections:
-            _check_unused(structured.algo, section, schema, method)
-            continue
+    for section in sections_of(method.config_class):
         try:  # the learners' own checks, with the section's key in front
-            OmegaConf.to_object(node)
+            OmegaConf.to_object(structured.algo[section])
         except ConfigError:
             raise
         except ValueError as e:
@@ -128,9 +137,6 @@ def validate(cfg: DictConfig | dict[str, Any], shipped_only: bool = False) -> Co
         out = OmegaConf.to_object(structured)
     except ValueError as e:
         raise ConfigError(full_key(str(e))) from None
-    for section in SECTIONS:
-        if section not in method.sections:
-            setattr(out.algo, section, None)
     _check_needs(out.algo, method)
     check = getattr(method, "check_config", None)  # the method's own rules between its sections
     if check is not None:
@@ -138,7 +144,7 @@ def validate(cfg: DictConfig | dict[str, Any], shipped_only: bool = False) -> Co
     return out
 
 
-def _check_needs(algo: AlgoConfig, method: type) -> None:
+def _check_needs(algo: MethodConfig, method: type) -> None:
     wanted = tuple(getattr(method, "needs", ()))
     for role in algo.needs:
         if role not in wanted:
@@ -160,21 +166,33 @@ def _section_key(section: str, message: str) -> str:
     return full if full.startswith("algo.") else f"algo.{section}: {message}"
 
 
-def _method(algo: DictConfig) -> type:
+def _method(target: Any) -> type:
+    if not target or target == "???":
+        raise ConfigError("algo._target_: no method is named (conf/algo/<name>.yaml sets it)")
     try:
-        return find_method(algo._target_)
+        return find_method(str(target))
     except Exception as e:
-        raise ConfigError(f"algo._target_: cannot use {algo._target_!r} as a method ({e})") from None
+        raise ConfigError(f"algo._target_: cannot use {target!r} as a method ({e})") from None
 
 
-def _check_unused(algo: DictConfig, section: str, schema: type, method: type) -> None:
-    """A section the method does not use must be left at its defaults."""
-    given = OmegaConf.to_container(algo[section]) if algo[section] is not None else None
-    default = OmegaConf.to_container(OmegaConf.structured(schema))
-    if given is None or given == default:
-        return
-    key = next((k for k in given if given[k] != default.get(k)), None)
-    uses = ", ".join(method.sections) or "none"
-    raise ConfigError(
-        f"algo.{section}.{key}: the {algo.name} method ({algo._target_}) has no {section} component (it uses: {uses})"
-    )
+def _check_keys(algo: DictConfig, method: type, former: bool) -> None:
+    """A key of `algo` (or of `algo.loop`) that the method's config does not have is refused, named; with
+    `former` (a config read back from a store), the ones an earlier version wrote are dropped instead: the
+    null sections of the methods it did not use and the loop knobs of other methods."""
+    config = method.config_class
+    loop = {f.name: f for f in fields(config)}["loop"].default_factory()  # type: ignore[misc]
+    known_algo, known_loop = {f.name for f in fields(config)}, {f.name for f in fields(loop)}
+    who = f"the {algo.get('name')} method ({method.__module__}.{method.__name__})"
+    for node, where, known in ((algo, "algo", known_algo), (algo.get("loop"), "algo.loop", known_loop)):
+        if not isinstance(node, DictConfig):
+            continue
+        for key in [k for k in node if k not in known]:
+            if former and (where == "algo.loop" or node[key] is None):
+                del node[key]
+                continue
+            if where == "algo.loop":
+                raise ConfigError(f"algo.loop.{key}: {who} has no such loop setting")
+            inner = next(iter(node[key]), None) if isinstance(node[key], DictConfig) else None
+            named = f"algo.{key}" + (f".{inner}" if inner is not None else "")
+            has = ", ".join(sections_of(method.config_class)) or "none"
+            raise ConfigError(f"{named}: {who} has no {key} section (its sections: {has})")

@@ -2,34 +2,31 @@
 
 `conf/` YAML is type-checked against these when Hydra composes it (`orchestrator.compose` registers
 `Config` in Hydra's ConfigStore and validates), and each dataclass's `__post_init__` refuses a bad
-value with its key named, before any process starts. The learners' own configs (`WorldModelConfig`,
-`VAEConfig`, ...) are used as they are, so a field is documented once, where it is declared. This
+value with its key named, before any process starts. `algo` is a method's own config, declared beside
+the method (a `MethodConfig` with the method's sections: the learners' configs, `WorldModelConfig`,
+`VAEConfig`, ..., used as they are, so that a field is documented once, where it is declared). This
 module holds only the dataclasses (and `ConfigError`); it reads no method's code.
 """
 
 from __future__ import annotations
 
 import re
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
+
+from omegaconf import MISSING
 
 from orchestrator.errors import ConfigError
 from orchestrator.provenance import CODE_VERSIONS
-from orchestrator.sections import AMPConfig, DemosConfig, ImitationConfig, OfflineConfig, PulseConfig
 from orchestrator.tracking.uri import tracking_uri_error
 from workers.body.character import file_problem
 from workers.learners.base import COMPILE_MODES as LEARNER_COMPILE
 from workers.learners.base import DEVICES as LEARNER_DEVICES
-from workers.learners.discriminator import DiscriminatorConfig
-from workers.learners.ppo import PPOConfig
-from workers.learners.task import TaskConfig
-from workers.learners.vae import VAEConfig
-from workers.learners.world_model import WorldModelConfig
 from workers.motion.errors import ClipError
 from workers.motion.formats import resolve
 from workers.sim.terrain import TerrainConfig
 from workers.sim.warp_physics import INSTALL_HINT, warp_available
 
-__all__ = ["ConfigError", "AMPConfig", "DemosConfig", "ImitationConfig", "OfflineConfig", "PulseConfig"]
+__all__ = ["ConfigError"]
 
 SIM_BACKENDS = ("mujoco", "warp")
 PIN_MODES = ("auto", "shared")  # runtime.pin_cores (orchestrator/runtime/cores.py); not "off": YAML reads it as false
@@ -90,36 +87,13 @@ class MotionConfig:
 
 @dataclass
 class LoopConfig:
-    # Training iterations; each collects, updates both learners, publishes weights and reports.
+    """The loop knobs every method has; a method's config names the loop it runs (`ReplayLoop`, `PPOLoop`, or one
+    of its own beside its module, such as ControlVAE's)."""
+
+    # Training iterations; each collects, updates the learners, publishes weights and reports.
     iterations: int = 200
     # Control steps each rollout worker collects per iteration, over all its environments.
     collect_steps: int = 16
-    # Learner samples (transitions in rollouts) per collected sample, for each learner...
-    replay_ratio: float = 4.0
-    # ...unless set here per learner (ControlVAE's schedule: world_model 16, vae 48).
-    replay_ratios: dict[str, float] = field(default_factory=dict)
-    # ControlVAE: where the VAE's synthetic rollouts start. "states": any stored state, drawn singly
-    # (the paper's "start states randomly selected from the simulation buffer"), with as many more
-    # states for the normaliser as windows would feed it; "windows": the first state of a stored
-    # window of rollout_steps transitions (never one of the last rollout_steps - 1 before an end).
-    vae_starts: str = "states"
-    # ControlVAE's data balancing (§3.4.3): every balance_every iterations (the paper: 200; 0: off), each
-    # library frame's value moves toward V* of Eq. 18 (discount balance_gamma) by balance_rate (Eq. 19's
-    # rate, not given in the paper), and starts are drawn ∝ 1/max(0.01, V).
-    balance_every: int = 200
-    balance_rate: float = 0.5
-    balance_gamma: float = 0.95
-    # ControlVAE's trajectory sampler (§3.4.4): per environment, switches of the reference clip per second
-    # of collection (the paper gives no rate; 0: none), and the seconds after a switch in which a fall is
-    # counted against it (otherwise a recovery).
-    switch_rate: float = 0.0
-    switch_window: float = 2.0
-    # Transitions kept in the replay buffer (ControlVAE N_B = 50,000); the oldest are evicted.
-    replay_capacity: int = 50_000
-    # Transitions collected before the first update.
-    warmup: int = 1_000
-    # Probability of z from the prior instead of the posterior while collecting (ControlVAE: 0.4).
-    prior_probability: float = 0.4
     # A worker more than this many versions behind the newest weights refreshes before collecting.
     staleness: int = 1
     # Iterations between checkpoints (and at the end); 0: only at the end.
@@ -144,73 +118,71 @@ class LoopConfig:
     end_on_fall: bool = True
     # Cap on a collection episode's control steps (ControlVAE 512); 0: none.
     max_episode_steps: int = 512
-    # PPO methods: collect the next batch while the learners train on this one (on Ray the workers
-    # then never wait for an update). Each batch is one iteration older than the policy it trains,
-    # which PPO's clipped importance ratio tolerates (asynchronous PPO variants do the same); false
-    # keeps PPO strictly on-policy. ControlVAE always overlaps (`staleness` bounds it).
-    overlap: bool = False
 
     def __post_init__(self) -> None:
         if self.max_episode_steps < 0:
             raise ConfigError(f"algo.loop.max_episode_steps must be non-negative, got {self.max_episode_steps}")
         if self.replay_keep < 0:
             raise ConfigError(f"algo.loop.replay_keep must be non-negative, got {self.replay_keep}")
-        for key in ("iterations", "collect_steps", "replay_capacity", "checkpoint_keep"):
+        for key in ("iterations", "collect_steps", "checkpoint_keep"):
             if getattr(self, key) < 1:
                 raise ConfigError(f"algo.loop.{key} must be at least 1, got {getattr(self, key)}")
+
+
+@dataclass
+class ReplayLoop(LoopConfig):
+    """The loop of a method whose learners sample a replay of its collections (ControlVAE, PULSE, the task)."""
+
+    # Learner samples (transitions in rollouts) per collected sample, for each learner.
+    replay_ratio: float = 4.0
+    # Transitions kept in the replay buffer (ControlVAE N_B = 50,000); the oldest are evicted.
+    replay_capacity: int = 50_000
+    # Transitions collected before the first update.
+    warmup: int = 1_000
+    # Probability of z from the prior instead of the posterior while collecting (ControlVAE: 0.4).
+    prior_probability: float = 0.4
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if self.replay_capacity < 1:
+            raise ConfigError(f"algo.loop.replay_capacity must be at least 1, got {self.replay_capacity}")
         if self.replay_ratio <= 0:
             raise ConfigError(f"algo.loop.replay_ratio must be positive, got {self.replay_ratio}")
-        for key, ratio in self.replay_ratios.items():
-            if ratio <= 0:
-                raise ConfigError(f"algo.loop.replay_ratios.{key} must be positive, got {ratio}")
-        if self.vae_starts not in ("states", "windows"):
-            raise ConfigError(f"algo.loop.vae_starts must be 'states' or 'windows', got {self.vae_starts!r}")
-        if self.balance_every < 0 or not 0 < self.balance_rate <= 1 or not 0 < self.balance_gamma <= 1:
-            raise ConfigError("algo.loop.balance_every must be non-negative, balance_rate and balance_gamma in (0, 1]")
-        if self.switch_rate < 0 or self.switch_window <= 0:
-            raise ConfigError("algo.loop.switch_rate must be non-negative and algo.loop.switch_window positive")
         if not 0 <= self.prior_probability <= 1:
             raise ConfigError(f"algo.loop.prior_probability must be in [0, 1], got {self.prior_probability}")
 
 
-# The sections a method may use, and their schemas. A method names its own in `Method.sections`;
-# a section that a method does not use must stay at its defaults (a value set there is refused, with
-# its key named) and is dropped (None) from the validated config.
-SECTIONS: dict[str, type] = {
-    "world_model": WorldModelConfig,
-    "vae": VAEConfig,
-    "ppo": PPOConfig,
-    "discriminator": DiscriminatorConfig,
-    "amp": AMPConfig,
-    "imitation": ImitationConfig,
-    "demos": DemosConfig,
-    "offline": OfflineConfig,
-    "pulse": PulseConfig,
-    "task": TaskConfig,
-}
+@dataclass
+class PPOLoop(LoopConfig):
+    """The loop of a method trained by PPO (AMP, the tracking expert, the task's PPO trainer)."""
+
+    # Collect the next batch while the learners train on this one (on Ray the workers then never wait for an
+    # update). Each batch is one iteration older than the policy it trains, which PPO's clipped importance ratio
+    # tolerates (asynchronous PPO variants do the same); false keeps PPO strictly on-policy.
+    overlap: bool = False
 
 
 @dataclass
-class AlgoConfig:
+class MethodConfig:
+    """`algo`: what every method's config has. Each method declares its own beside its module (a subclass with
+    its sections and its loop: `orchestrator.algos.controlvae.ControlVAEAlgo`, ...), the schema that
+    conf/algo/<name>.yaml names in its defaults list and `orchestrator.compose.validate` checks it against."""
+
     # The method's class (orchestrator/algos/): conf/algo/<name>.yaml sets it.
-    _target_: str = "orchestrator.algos.controlvae.ControlVAE"
+    _target_: str = MISSING
     # The method's name: the MLflow tags `algo` and `stage`.
-    name: str = "controlvae"
-    world_model: WorldModelConfig | None = field(default_factory=WorldModelConfig)
-    vae: VAEConfig | None = field(default_factory=VAEConfig)
-    ppo: PPOConfig | None = field(default_factory=PPOConfig)
-    discriminator: DiscriminatorConfig | None = field(default_factory=DiscriminatorConfig)
-    amp: AMPConfig | None = field(default_factory=AMPConfig)
-    imitation: ImitationConfig | None = field(default_factory=ImitationConfig)
-    demos: DemosConfig | None = field(default_factory=DemosConfig)
-    offline: OfflineConfig | None = field(default_factory=OfflineConfig)
-    pulse: PulseConfig | None = field(default_factory=PulseConfig)
-    task: TaskConfig | None = field(default_factory=TaskConfig)
+    name: str = MISSING
     loop: LoopConfig = field(default_factory=LoopConfig)
     # The stages this method needs, role -> spec: "<algo> [key=value ...]" (a stage composed like a
     # run of its own and reused when an identical one has finished in the store) or "run:<id>"
     # (orchestrator/stages.py). The method's class says which roles it needs.
     needs: dict[str, str] = field(default_factory=dict)
+
+
+def sections_of(config: type) -> tuple[str, ...]:
+    """The sections of a method's config class: its fields beyond those every method has."""
+    common = {f.name for f in fields(MethodConfig)}
+    return tuple(f.name for f in fields(config) if f.name not in common)
 
 
 PLACEMENTS = ("PACK", "SPREAD", "STRICT_PACK", "STRICT_SPREAD")
@@ -398,7 +370,7 @@ class SimSettings:
 class Config:
     character: CharacterConfig = field(default_factory=CharacterConfig)
     motion: MotionConfig = field(default_factory=MotionConfig)
-    algo: AlgoConfig = field(default_factory=AlgoConfig)
+    algo: MethodConfig = field(default_factory=MethodConfig)
     runtime: RuntimeConfig = field(default_factory=RuntimeConfig)
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)

@@ -81,9 +81,9 @@ def config_hash(cfg: Config, upstream: dict[str, str] | None = None) -> str:
     sim = d.pop("sim")
     if sim["backend"] != "mujoco":
         d["sim_backend"] = sim["backend"]
-    # Sections the method does not use are None: left out, so that a new section elsewhere changes no hash.
+    # `algo` is the method's own config (its sections and its loop: a knob of another method changes no hash here).
     # The method is named by algo.name; its class's module path (_target_) is where code lives, not what it computes.
-    d["algo"] = {k: v for k, v in d["algo"].items() if v is not None and k != "_target_"}
+    d["algo"] = {k: v for k, v in d["algo"].items() if k != "_target_"}
     d["algo"]["loop"] = {k: v for k, v in d["algo"]["loop"].items() if k not in LOOP_NOT_RESULT}
     d["algo"]["needs"] = dict(sorted((upstream or {}).items()))
     d["inputs"] = inputs_digest(cfg.character.xml, cfg.motion.clips)

@@ -10,17 +10,39 @@ termination); there is no tracking termination, since AMP does not track the cli
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field
 from typing import Any
 
 from orchestrator.algos.base import Component
-from orchestrator.algos.onpolicy import OnPolicy
+from orchestrator.algos.onpolicy import OnPolicy, PPOAlgo
 from orchestrator.components.amp import DiscriminatorActor
+from orchestrator.schema import ConfigError
+from workers.learners.discriminator import DiscriminatorConfig
 from workers.recorders import AMPFeatures
 from workers.sim.env import without_tracking_termination
 
 
+@dataclass
+class AMPConfig:
+    # AMP's reward r = w_G·r_G + w_S·r_S (Eq. 4). Single-clip imitation (Sec. 8.4) trains on the style
+    # reward alone: w_G = 0, w_S = 1. With a task, AMP uses w_G = w_S = 0.5.
+    task_weight: float = 0.0
+    style_weight: float = 1.0
+
+    def __post_init__(self) -> None:
+        for key in ("task_weight", "style_weight"):
+            if getattr(self, key) < 0:
+                raise ConfigError(f"algo.amp.{key} must be non-negative, got {getattr(self, key)}")
+
+
+@dataclass
+class AMPAlgo(PPOAlgo):
+    discriminator: DiscriminatorConfig = field(default_factory=DiscriminatorConfig)
+    amp: AMPConfig = field(default_factory=AMPConfig)
+
+
 class AMP(OnPolicy):
-    sections = ("ppo", "discriminator", "amp")
+    config_class = AMPAlgo
     observation = "state"
 
     def components(self) -> list[Component]:

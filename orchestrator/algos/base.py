@@ -3,8 +3,9 @@
 A method (`conf/algo/<name>.yaml` names its class with `_target_`; one module per method in this
 folder, named by its paper) says:
 
-- which config sections of `algo` it uses (`sections`); `orchestrator.compose.validate` refuses a
-  section the method does not have, with its key named;
+- its config (`config_class`): a dataclass beside the method, `orchestrator.schema.MethodConfig` with the
+  method's sections and its loop, which conf/algo/<name>.yaml is validated against (a key the method does
+  not have is refused, named);
 - which upstream stages it reads (`needs`), and whether a finished run of it can serve as an
   expert (`expert`);
 - which stateful components it runs (`components`: learners, a replay buffer; classes of
@@ -27,7 +28,7 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Protocol
 
 from orchestrator.compose import find_method
-from orchestrator.schema import AlgoConfig, Config
+from orchestrator.schema import Config, MethodConfig
 from orchestrator.upstream import Upstream
 from orchestrator.world import collection_sim_config, load_character_and_library
 
@@ -98,10 +99,10 @@ class Component:
 
 
 class Method:
-    """The base of every method. Subclasses set `sections` and implement the hooks below."""
+    """The base of every method. Subclasses set `config_class` and implement the hooks below."""
 
-    # The config sections of `algo` this method uses, besides `loop` (which every method has).
-    sections: tuple[str, ...] = ()
+    # The method's config: `algo`'s schema (its sections and its loop, `orchestrator.schema.sections_of`).
+    config_class: type[MethodConfig] = MethodConfig
     # The roles of the upstream stages it reads (`algo.needs`, orchestrator/stages.py).
     needs: tuple[str, ...] = ()
     # Whether the Trainer starts rollout workers for it (offline methods train on a dataset).
@@ -126,9 +127,9 @@ class Method:
         return cls
 
     @classmethod
-    def check_config(cls, algo: AlgoConfig) -> None:
+    def check_config(cls, algo: MethodConfig) -> None:
         """A rule between the method's own sections that no one section can check alone; raises ConfigError
-        naming the key (`compose.validate` calls it, the unused sections already None). None by default."""
+        naming the key (`compose.validate` calls it). None by default."""
 
     @classmethod
     def needs_of(cls, cfg: Config) -> dict[str, str]:
@@ -208,11 +209,11 @@ class UpdateSchedule:
         self.updates = 0
 
     @classmethod
-    def of(cls, cfg: Config, learner: str) -> UpdateSchedule:
-        """The schedule of `algo.<learner>` (its batch_size and rollout_steps) at its replay ratio:
-        `algo.loop.replay_ratios[learner]`, else `algo.loop.replay_ratio`."""
-        loop, section = cfg.algo.loop, getattr(cfg.algo, learner)
-        return cls(loop.replay_ratios.get(learner, loop.replay_ratio), section.batch_size, section.rollout_steps)
+    def of(cls, cfg: Config, learner: str, ratio: float | None = None) -> UpdateSchedule:
+        """The schedule of `algo.<learner>` (its batch_size and rollout_steps) at `ratio`, by default
+        `algo.loop.replay_ratio`."""
+        section = getattr(cfg.algo, learner)
+        return cls(cfg.algo.loop.replay_ratio if ratio is None else ratio, section.batch_size, section.rollout_steps)
 
     def due(self, collected: int) -> int:
         """The updates the `collected` new samples make due (counted in `updates`)."""

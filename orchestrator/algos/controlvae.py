@@ -22,20 +22,68 @@ starts of clip switches (`switch_rate`), ∝ 1/max(0.01, V).
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass, field
 from typing import Any
 
 from orchestrator.algos.base import Component, ReplayFed, UpdateSchedule
 from orchestrator.components.controlvae import VAEActor, WorldModelActor
 from orchestrator.components.replay import ReplayActor
 from orchestrator.evaluation.protocols import evaluate_controller
-from workers.learners.vae import state_weight_vector
+from orchestrator.schema import ConfigError, MethodConfig, ReplayLoop
+from workers.learners.vae import ControlVAEObjective, state_weight_vector
+from workers.learners.world_model import WorldModelConfig
 from workers.policies import VAEPolicy
 from workers.recorders import TrackingReward
 from workers.replay.balancing import FrameValues
 
 
+@dataclass
+class ControlVAELoop(ReplayLoop):
+    """ControlVAE's loop: a replay ratio per learner, where synthetic rollouts start, data balancing and the
+    trajectory sampler (§3.4)."""
+
+    # Learner samples per collected sample, per learner, over `replay_ratio` (the paper's schedule: world_model 16,
+    # vae 48).
+    replay_ratios: dict[str, float] = field(default_factory=dict)
+    # Where the VAE's synthetic rollouts start. "states": any stored state, drawn singly (the paper's "start states
+    # randomly selected from the simulation buffer"), with as many more states for the normaliser as windows would
+    # feed it; "windows": the first state of a stored window of rollout_steps transitions (never one of the last
+    # rollout_steps - 1 before an end).
+    vae_starts: str = "states"
+    # Data balancing (§3.4.3): every balance_every iterations (the paper: 200; 0: off), each library frame's value
+    # moves toward V* of Eq. 18 (discount balance_gamma) by balance_rate (Eq. 19's rate, not given in the paper),
+    # and starts are drawn ∝ 1/max(0.01, V).
+    balance_every: int = 200
+    balance_rate: float = 0.5
+    balance_gamma: float = 0.95
+    # The trajectory sampler (§3.4.4): per environment, switches of the reference clip per second of collection
+    # (the paper gives no rate; 0: none), and the seconds after a switch in which a fall is counted against it
+    # (otherwise a recovery).
+    switch_rate: float = 0.0
+    switch_window: float = 2.0
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        for key, ratio in self.replay_ratios.items():
+            if ratio <= 0:
+                raise ConfigError(f"algo.loop.replay_ratios.{key} must be positive, got {ratio}")
+        if self.vae_starts not in ("states", "windows"):
+            raise ConfigError(f"algo.loop.vae_starts must be 'states' or 'windows', got {self.vae_starts!r}")
+        if self.balance_every < 0 or not 0 < self.balance_rate <= 1 or not 0 < self.balance_gamma <= 1:
+            raise ConfigError("algo.loop.balance_every must be non-negative, balance_rate and balance_gamma in (0, 1]")
+        if self.switch_rate < 0 or self.switch_window <= 0:
+            raise ConfigError("algo.loop.switch_rate must be non-negative and algo.loop.switch_window positive")
+
+
+@dataclass
+class ControlVAEAlgo(MethodConfig):
+    world_model: WorldModelConfig = field(default_factory=WorldModelConfig)
+    vae: ControlVAEObjective = field(default_factory=ControlVAEObjective)
+    loop: ControlVAELoop = field(default_factory=ControlVAELoop)
+
+
 class ControlVAE(ReplayFed):
-    sections = ("world_model", "vae")
+    config_class = ControlVAEAlgo
     replay_buffers = 1
     expert = "vae"  # a demos stage can take its posterior as the expert
 
@@ -43,7 +91,8 @@ class ControlVAE(ReplayFed):
         super().__init__(cfg, character, upstream)
         loop = cfg.algo.loop
         # Each learner's updates by its own replay ratio (the credit between iterations is checkpointed).
-        self.schedules = {key: UpdateSchedule.of(cfg, key) for key in ("world_model", "vae")}
+        ratios = {key: loop.replay_ratios.get(key, loop.replay_ratio) for key in ("world_model", "vae")}
+        self.schedules = {key: UpdateSchedule.of(cfg, key, ratio) for key, ratio in ratios.items()}
         self.values: FrameValues | None = None  # data balancing's value per library frame, once it starts
         self.balance = (loop.balance_rate, loop.balance_gamma)
 

@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import json
 import time
-from dataclasses import replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -31,7 +31,7 @@ import numpy as np
 
 from orchestrator import world
 from orchestrator.algos.base import Component, Method
-from orchestrator.schema import ConfigError
+from orchestrator.schema import ConfigError, MethodConfig
 from orchestrator.upstream import DEMOS_FILE, MANIFEST_FILE, RUN_ID, Upstream, expert_weights
 from workers.body.mirror import mirror_maps
 from workers.demos import DemoSet
@@ -39,8 +39,39 @@ from workers.learners.base import Weights
 from workers.policies import ExpertPolicy
 
 
+@dataclass
+class DemosConfig:
+    # Expert rollouts per clip of the motion config, from its frame 0 (PhysicsVAE Sec. 5.1.1: 10).
+    rollouts_per_clip: int = 10
+    # Gaussian noise added to the expert's (mean) action, std in radians of PD target (PhysicsVAE: 0.05).
+    noise: float = 0.05
+    # Length of a rollout: a looping clip is tracked this long, a one-shot clip to its last frame; a
+    # rollout also ends where the expert falls.
+    seconds: float = 10.0
+    # Whose rollouts: "per_clip", one imitation controller per clip as PhysicsVAE trains them (§5.1.1): each
+    # clip of motion.clips gets its own `algo.needs.expert` stage, trained on that clip alone (mirror off), and
+    # a mirrored clip is driven by its clip's expert mirrored (workers/body/mirror.py); "shared", the one
+    # expert stage trained on every clip (ControlVAE-style multi-clip tracking).
+    experts: str = "per_clip"
+
+    def __post_init__(self) -> None:
+        if self.experts not in ("per_clip", "shared"):
+            raise ConfigError(f"algo.demos.experts: expected 'per_clip' or 'shared', got {self.experts!r}")
+        if self.rollouts_per_clip < 1:
+            raise ConfigError(f"algo.demos.rollouts_per_clip must be at least 1, got {self.rollouts_per_clip}")
+        if self.noise < 0:
+            raise ConfigError(f"algo.demos.noise must be non-negative, got {self.noise}")
+        if self.seconds <= 0:
+            raise ConfigError(f"algo.demos.seconds must be positive, got {self.seconds}")
+
+
+@dataclass
+class DemosAlgo(MethodConfig):
+    demos: DemosConfig = field(default_factory=DemosConfig)
+
+
 class Demos(Method):
-    sections = ("demos",)
+    config_class = DemosAlgo
     needs = ("expert",)
 
     @classmethod

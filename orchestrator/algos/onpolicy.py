@@ -19,22 +19,33 @@ new weights are published once.
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass, field
 from typing import Any
 
 from orchestrator.algos.base import Component, Method
 from orchestrator.components.ppo import PPOActor
 from orchestrator.evaluation.protocols import evaluate_imitation
+from orchestrator.schema import MethodConfig, PPOLoop
 from workers.body.features import StateLayout
-from workers.learners.ppo import build_actor_critic
+from workers.learners.ppo import PPOConfig, build_actor_critic
 from workers.policies import GaussianPolicy, observation_dim
 
 METRIC_PREFIX = {"discriminator": "disc"}  # DESIGN's metric namespaces where they differ from the key
 
 
+@dataclass
+class PPOAlgo(MethodConfig):
+    """What the config of a method trained by this loop has: PPO's section and the PPO loop."""
+
+    ppo: PPOConfig = field(default_factory=PPOConfig)
+    loop: PPOLoop = field(default_factory=PPOLoop)
+
+
 class OnPolicy(Method):
     """A PPO method; subclasses set `observation` (or `observation_of` where a config decides it) and may add
-    components and rewards."""
+    components and rewards; their configs extend `PPOAlgo`."""
 
+    config_class = PPOAlgo
     observation = "state"
     residual = False  # actions are offsets from the reference's next pose (workers.policies.GaussianPolicy)
     expert = "ppo"  # a demos or PULSE stage can distil its actor

@@ -16,11 +16,51 @@ capped at `eval.fall_max_seconds`), with the tracking error of the posterior.
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field
+
 from orchestrator.algos.base import Component, Method
 from orchestrator.components.physicsvae import PhysicsVAEActor, SimulationLayerActor
 from orchestrator.evaluation.protocols import evaluate_controller
+from orchestrator.schema import ConfigError, MethodConfig
 from orchestrator.upstream import load_manifest
+from workers.learners.vae import PhysicsVAEObjective
+from workers.learners.world_model import WorldModelConfig
 from workers.policies import VAEPolicy
+
+
+@dataclass
+class OfflineConfig:
+    # Offline training on a demos dataset (the world_model and physicsvae stages): one iteration is one
+    # epoch, a pass over the training transitions. PhysicsVAE: the learning rate decays x0.7 every 50 epochs.
+    lr_decay: float = 0.7
+    decay_every: int = 50
+    # Rollouts of each clip held out of training (the last ones) for the held-out metrics.
+    holdout_rollouts: int = 1
+    # The updates' arithmetic: "float32", or "bfloat16" (torch.autocast: the matmuls in bfloat16, the weights,
+    # the optimiser and the losses' sums in float32; 1.6x an update on a CPU with bfloat16 GEMMs). It changes the
+    # numbers, so it is part of the stage's hash, and it ships only where a paired study shows that it does not
+    # change what the stages learn (docs/physicsvae.md).
+    precision: str = "float32"
+
+    def __post_init__(self) -> None:
+        if self.precision not in ("float32", "bfloat16"):
+            raise ConfigError(f"algo.offline.precision: expected 'float32' or 'bfloat16', got {self.precision!r}")
+        if not 0 < self.lr_decay <= 1:
+            raise ConfigError(f"algo.offline.lr_decay must be in (0, 1], got {self.lr_decay}")
+        if self.decay_every < 1 or self.holdout_rollouts < 0:
+            raise ConfigError("algo.offline.decay_every must be at least 1 and holdout_rollouts non-negative")
+
+
+@dataclass
+class SimulationLayerAlgo(MethodConfig):
+    world_model: WorldModelConfig = field(default_factory=WorldModelConfig)
+    offline: OfflineConfig = field(default_factory=OfflineConfig)
+
+
+@dataclass
+class PhysicsVAEAlgo(MethodConfig):
+    vae: PhysicsVAEObjective = field(default_factory=PhysicsVAEObjective)  # the layer: its world_model stage's
+    offline: OfflineConfig = field(default_factory=OfflineConfig)
 
 
 class Offline(Method):
@@ -64,7 +104,7 @@ class Offline(Method):
 
 
 class SimulationLayer(Offline):
-    sections = ("world_model", "offline")
+    config_class = SimulationLayerAlgo
     needs = ("demos",)
     learner_key = "world_model"
 
@@ -81,7 +121,7 @@ class SimulationLayer(Offline):
 
 
 class PhysicsVAE(Offline):
-    sections = ("vae", "offline")  # the layer's network is its world_model stage's (algo.world_model there)
+    config_class = PhysicsVAEAlgo
     needs = ("demos", "world_model")
     learner_key = "vae"
 

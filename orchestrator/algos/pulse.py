@@ -19,6 +19,7 @@ student's own states, and random sampling from the prior (time until fall).
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -28,23 +29,38 @@ from orchestrator.algos.base import Component, ReplayFed, UpdateSchedule
 from orchestrator.components.pulse import PulseActor
 from orchestrator.components.replay import ReplayActor
 from orchestrator.evaluation.protocols import evaluate_controller
-from orchestrator.schema import AlgoConfig, ConfigError
+from orchestrator.schema import ConfigError, MethodConfig, ReplayLoop
 from orchestrator.upstream import expert_weights
 from orchestrator.world import evaluation_sim_config
 from workers.distill import teacher_actions
 from workers.evaluation.controller import posterior_mean_action
 from workers.evaluation.success import tracking_success
-from workers.learners.vae import build_controller
+from workers.learners.vae import PulseObjective, build_controller
 from workers.policies import VAEPolicy, expert_module
 
 
+@dataclass
+class PulseConfig:
+    # PULSE's "prior-action" switch (Table 3): a downstream task policy acts as a residual on the learned
+    # prior's mean, a = D(s, μ_task + μ_p) (Eq. 4). It changes nothing in the distillation itself; it is
+    # part of the stage's config so that a task stage on this decoder reads it. Needs the learned prior.
+    prior_action: bool = True
+
+
+@dataclass
+class PulseAlgo(MethodConfig):
+    vae: PulseObjective = field(default_factory=PulseObjective)
+    pulse: PulseConfig = field(default_factory=PulseConfig)
+    loop: ReplayLoop = field(default_factory=ReplayLoop)
+
+
 class Pulse(ReplayFed):
-    sections = ("vae", "pulse")
+    config_class = PulseAlgo
     replay_buffers = 1
     needs = ("expert",)
 
     @classmethod
-    def check_config(cls, algo: AlgoConfig) -> None:
+    def check_config(cls, algo: PulseAlgo) -> None:
         if algo.pulse.prior_action and algo.vae.prior != "learned":
             raise ConfigError(
                 f"algo.pulse.prior_action: a residual on the prior's mean (PULSE Eq. 4) needs algo.vae.prior=learned, "

@@ -32,6 +32,7 @@ sweep over skill stages can set them beside the task's results.
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass, field
 from typing import Any
 
 from orchestrator.algos.base import Component, ReplayFed, UpdateSchedule
@@ -39,8 +40,23 @@ from orchestrator.algos.onpolicy import OnPolicy
 from orchestrator.components.ppo import PPOActor
 from orchestrator.components.task import TaskActor, skill_model
 from orchestrator.evaluation.tasks import evaluate_task
+from orchestrator.schema import MethodConfig, PPOLoop, ReplayLoop
 from workers.body.features import StateLayout
+from workers.learners.ppo import PPOConfig
+from workers.learners.task import TaskConfig
 from workers.task.policy import TaskPPOPolicy, TaskRolloutPolicy, ppo_dims
+
+
+@dataclass
+class TaskLoop(ReplayLoop, PPOLoop):
+    """The task's loop: the model-based trainer's replay knobs and the PPO trainer's."""
+
+
+@dataclass
+class TaskAlgo(MethodConfig):
+    task: TaskConfig = field(default_factory=TaskConfig)
+    ppo: PPOConfig = field(default_factory=PPOConfig)  # the ppo trainer's (algo.task.trainer=ppo)
+    loop: TaskLoop = field(default_factory=TaskLoop)
 
 
 class SkillTask:
@@ -76,7 +92,7 @@ class SkillTask:
 
 
 class Task(SkillTask, ReplayFed):
-    sections = ("task", "ppo")
+    config_class = TaskAlgo
     needs = ("skill",)
     learner_key = "task"
 
@@ -144,7 +160,7 @@ class Task(SkillTask, ReplayFed):
 class TaskPPO(SkillTask, OnPolicy):
     """A task policy trained by PPO in the simulator (`algo.task.trainer=ppo`), on the reward e^(−L_g)."""
 
-    sections = Task.sections
+    config_class = TaskAlgo
     needs = Task.needs
     expert = None
     learner_key = "ppo"

@@ -32,7 +32,7 @@ import torch
 
 from orchestrator.bench.rollout import make_worker
 from orchestrator.bench.sim import walk_run_setup
-from workers.learners.vae import VAEConfig, state_weight_vector
+from workers.learners.vae import ControlVAEObjective, state_weight_vector
 from workers.recorders import TrackingReward
 from workers.rollout import RolloutWorker
 from workers.sim.env import BatchedSim, SimConfig
@@ -103,7 +103,7 @@ def frozen_worker(
     worker = make_worker(kind, character, library, 1, SimConfig(), seed)  # the policy and recorders of `kind`
     recorders = worker.recorders
     if kind.startswith("vae"):  # ControlVAE's worker records its tracking reward (orchestrator/algos/controlvae.py)
-        weights = state_weight_vector(character.num_bodies, VAEConfig().state_weights).numpy()
+        weights = state_weight_vector(character.num_bodies, ControlVAEObjective().state_weights).numpy()
         recorders = [TrackingReward(weights)]
     if sim == "warp":
         frozen_sim = frozen_warp_sim(character, library, envs, device, seed)

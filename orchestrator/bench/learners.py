@@ -80,7 +80,7 @@ from workers.learners.base import Learner, cpu_seeded, resolve_device
 from workers.learners.discriminator import DiscriminatorBatch, DiscriminatorConfig, DiscriminatorLearner
 from workers.learners.ppo import PPOBatch, PPOConfig, PPOLearner
 from workers.learners.task import TaskBatch, TaskConfig, TaskLearner
-from workers.learners.vae import VAEBatch, VAEConfig, VAELearner, build_controller
+from workers.learners.vae import ControlVAEObjective, VAEBatch, VAELearner, build_controller
 from workers.learners.world_model import WorldModelBatch, WorldModelConfig, WorldModelLearner
 from workers.models.world_model import WorldModel
 
@@ -176,8 +176,8 @@ def build_world_model(size: str, gen: torch.Generator, device: torch.device = CP
     return Case(learner, batch, f"MLP {_dims(c.hidden)}, T_w={t}, N_w={n}")
 
 
-def vae_config(size: str) -> VAEConfig:
-    laptop = VAEConfig(
+def vae_config(size: str) -> ControlVAEObjective:
+    laptop = ControlVAEObjective(
         latent_dim=32,
         encoder_hidden=(256, 256),
         policy="mlp",
@@ -187,10 +187,10 @@ def vae_config(size: str) -> VAEConfig:
         batch_size=64,
         rollout_steps=8,
     )
-    small = VAEConfig(
+    small = ControlVAEObjective(
         latent_dim=32, encoder_hidden=(256, 256), policy_hidden=(256, 256, 256), rollout_steps=8, batch_size=64
     )
-    return _size(size, paper=VAEConfig(), laptop=laptop, small=small)
+    return _size(size, paper=ControlVAEObjective(), laptop=laptop, small=small)
 
 
 def _wm_hidden(size: str) -> tuple[int, ...]:

@@ -49,10 +49,11 @@ def measure(
             "tracking=off",
             "progress=false",
             f"seed={seed}",
-            "algo.loop.warmup=0",
             f"sim.backend={sim}",
             f"sim.device={sim_device if sim == 'warp' else 'cpu'}",  # MuJoCo C runs on the CPU only
         ]
+        if "warmup" in compose(overrides).algo.loop:  # a replay-fed method learns from its first collection
+            overrides.append("algo.loop.warmup=0")
         cfg = validate(compose(overrides))
         rt, trainer = untracked_trainer(cfg)
         try:

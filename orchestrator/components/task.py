@@ -31,7 +31,7 @@ def skill_model(up: Upstream, world_model: bool) -> dict[str, Any]:
     physicsvae, pulse); a StageError naming it if it is not one."""
     cfg = up.config()
     name = cfg.algo.name
-    if cfg.algo.vae is None:
+    if getattr(cfg.algo, "vae", None) is None:
         raise StageError(f"{up.describe()}: a {name} run is not a skill model (it has no VAE controller)")
     state = up.checkpoint()
     vae = state.get("vae")
@@ -41,7 +41,8 @@ def skill_model(up: Upstream, world_model: bool) -> dict[str, Any]:
     if module is None:
         raise StageError(f"{up.describe()}: its checkpoint's vae state has no weights")
     # PULSE's prior-action switch (Table 3); the other skill models' tasks always act on the prior's mean.
-    prior_action = bool(cfg.algo.pulse.prior_action) if cfg.algo.pulse is not None else True
+    pulse = getattr(cfg.algo, "pulse", None)
+    prior_action = bool(pulse.prior_action) if pulse is not None else True
     out = {"name": name, "config": cfg.algo.vae, "module": module, "prior_action": prior_action}
     if world_model:
         out["world_model"] = _world_model(up, cfg, state)
@@ -50,7 +51,7 @@ def skill_model(up: Upstream, world_model: bool) -> dict[str, Any]:
 
 def _world_model(up: Upstream, cfg: Config, state: dict[str, Any]) -> tuple[Any, dict[str, Any]]:
     """The skill stage's own world model (ControlVAE), else that of its world_model stage (PhysicsVAE's layer)."""
-    if "world_model" in state and cfg.algo.world_model is not None:
+    if "world_model" in state and hasattr(cfg.algo, "world_model"):
         return cfg.algo.world_model, state["world_model"]["module"]
     if "world_model" in up.lineage:
         cache = up.cache.parent / f"{up.role}.world_model"

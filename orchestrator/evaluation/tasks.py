@@ -7,8 +7,6 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
-from matplotlib.figure import Figure
-
 from orchestrator.evaluation.protocols import Progress, jsonable
 from orchestrator.schema import Config
 from orchestrator.tracking.base import RunLogger
@@ -63,6 +61,8 @@ def evaluate_task(
 
 
 def plot_task_eval(result: dict[str, Any], task: str, path: Path, title: str) -> None:
+    from matplotlib.figure import Figure  # imported when a figure is drawn: the benchmarks draw none
+
     fig = Figure(figsize=(10, 4))
     a, b = fig.subplots(1, 2)
     a.plot(result["curve_t"], result["curve"], color="tab:blue")

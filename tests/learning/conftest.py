@@ -15,7 +15,7 @@ import pytest
 import torch
 
 from workers.learners.base import Schedule
-from workers.learners.vae import VAEBatch, VAEConfig, VAELearner
+from workers.learners.vae import ControlVAEObjective, VAEBatch, VAELearner
 from workers.learners.world_model import WorldModelBatch, WorldModelConfig, WorldModelLearner
 from workers.models import body_state
 from workers.sim.env import BatchedSim
@@ -121,7 +121,7 @@ VAE_STEPS = 8
 def train_vae(prior, library, trajectories, world_model, updates=300, seed=0):
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed)
-    config = VAEConfig(
+    config = ControlVAEObjective(
         prior=prior,
         latent_dim=16,
         encoder_hidden=(128, 128),

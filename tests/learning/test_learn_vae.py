@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from workers.learners.base import Schedule
-from workers.learners.vae import VAEBatch, VAEConfig, VAELearner
+from workers.learners.vae import VAEBatch, VAELearner, vae_config
 from workers.models.body_state import reference_windows
 
 
@@ -28,7 +28,7 @@ def test_behaviour_cloning_objectives_learn_the_expert(objective, walk_run, traj
     torch.manual_seed(0)
     rng = np.random.default_rng(0)
     steps = 4
-    config = VAEConfig(
+    config = vae_config(
         objective=objective,
         prior="standard_normal" if objective == "physicsvae" else "learned",
         latent_dim=16,

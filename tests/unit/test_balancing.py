@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from workers.learners.base import Weights
-from workers.learners.vae import VAEConfig, build_controller, state_weight_vector
+from workers.learners.vae import ControlVAEObjective, VAEConfig, build_controller, state_weight_vector
 from workers.motion.library import MotionLibrary, balancing_weights
 from workers.policies import VAEPolicy
 from workers.recorders import TrackingReward
@@ -136,7 +136,7 @@ def weights(character) -> Weights:
 
 def test_switches_happen_at_the_configured_rate_and_windows_never_cross_them(character, walk_run, weights):
     policy = VAEPolicy(character.num_bodies, character.num_actions, SMALL, 0.0)
-    w = state_weight_vector(character.num_bodies, SMALL.state_weights).numpy()
+    w = state_weight_vector(character.num_bodies, ControlVAEObjective().state_weights).numpy()
     worker = RolloutWorker(character, walk_run, 8, policy, seed=1, recorders=[TrackingReward(w)], switch_rate=3.0)
     worker.set_weights(weights)
     traj = worker.collect(150)

@@ -9,7 +9,7 @@ from hydra import compose, initialize_config_dir
 
 from orchestrator.algos.base import method_class
 from orchestrator.compose import register, validate
-from orchestrator.schema import SECTIONS, ConfigError
+from orchestrator.schema import ConfigError, sections_of
 
 CONF = Path(__file__).resolve().parents[2] / "conf"
 GROUPS = ["character", "motion", "algo", "runtime", "tracking", "scale"]
@@ -36,8 +36,8 @@ def test_every_group_option_composes_and_validates(group, option):
 def test_every_method_composes_with_every_scale(algo, scale):
     cfg = validate(composed(f"algo={algo}", f"scale={scale}"))
     method = method_class(cfg)
-    for section in SECTIONS:  # the method's sections are there, the others dropped
-        assert (getattr(cfg.algo, section) is not None) == (section in method.sections), section
+    assert type(cfg.algo) is method.config_class  # the method's own config, its sections and nothing else
+    assert all(getattr(cfg.algo, section) is not None for section in sections_of(method.config_class))
     assert (CONF / "algo_scale" / f"{algo}_{scale}.yaml").exists()
 
 
@@ -61,7 +61,7 @@ def test_defaults_are_the_laptop_run():
     assert cfg.runtime._target_.endswith("RayRuntime") and cfg.runtime.address is None and cfg.motion.mirror
     assert "walker/turn_left0" in cfg.motion.clips and cfg.algo.vae.prior == "conditional"
     assert list(cfg.algo.world_model.hidden) == [256, 256, 256]  # algo_scale/controlvae_laptop
-    assert cfg.algo.ppo is None and cfg.algo.discriminator is None
+    assert not hasattr(cfg.algo, "ppo") and not hasattr(cfg.algo, "discriminator")
     assert cfg.runtime.learner_compile == "eager" and cfg.runtime.pin_cores == "auto"
     paper = validate(composed("scale=paper"))
     assert list(paper.algo.vae.policy_hidden) == [512, 512, 512] and paper.algo.vae.num_experts == 6
@@ -93,7 +93,7 @@ def test_ablation_gp_names_its_loss_and_penalty_placement():
 @pytest.mark.parametrize(
     ("override", "message"),
     [
-        ("algo.vae.alpha=-1", "algo.vae.alpha must be non-negative"),
+        ("algo.vae.w_a2=-1", "algo.vae.w_a2 must be non-negative"),
         ("algo.vae.beta.start=-0.5", "algo.vae.beta must be non-negative"),
         ("algo.vae.prior=gaussian", "algo.vae.prior: unknown prior type 'gaussian'"),
         ("runtime.rollout_workers=0", "runtime.rollout_workers must be at least 1"),
@@ -105,9 +105,6 @@ def test_ablation_gp_names_its_loss_and_penalty_placement():
         ("motion.clips=[humanoid3d_walk,humanoid3d_moonwalk]", r"motion.clips\[1\]: humanoid3d_moonwalk"),
         ("algo.loop.iterations=0", "algo.loop.iterations must be at least 1"),
         ("character.control_hz=7", "character.sim_hz"),
-        # A method given a component it lacks.
-        ("algo.ppo.clip=0.1", r"algo.ppo.clip: the controlvae method .* has no ppo component"),
-        ("algo.discriminator.w_gp=5", "algo.discriminator.w_gp: the controlvae method"),
         ("algo._target_=orchestrator.trainer.Trainer", "algo._target_: cannot use 'orchestrator.trainer.Trainer'"),
         # Numbers no generator or optimiser takes (torch's Adam refuses lr=nan only when it is built, mid-run).
         ("algo.world_model.lr=nan", r"algo.world_model.lr: nan is not a finite number"),
@@ -124,9 +121,6 @@ def test_bad_values_are_refused_with_their_key(override, message):
 @pytest.mark.parametrize(
     ("overrides", "message"),
     [
-        (("algo=amp", "algo.world_model.lr=0.1"), r"algo.world_model.lr: the amp method .* has no world_model"),
-        (("algo=amp", "algo.vae.prior=learned"), "algo.vae.prior: the amp method"),
-        (("algo=tracker", "algo.discriminator.w_gp=1"), "algo.discriminator.w_gp: the tracker method"),
         # Negative reward weights.
         (("algo=amp", "algo.amp.style_weight=-1"), "algo.amp.style_weight must be non-negative"),
         (("algo=amp", "algo.amp.task_weight=-0.5"), "algo.amp.task_weight must be non-negative"),
@@ -136,6 +130,7 @@ def test_bad_values_are_refused_with_their_key(override, message):
         (("algo=amp", "algo.discriminator.gp_on=policy"), "algo.discriminator: unknown gradient penalty placement"),
         (("algo=amp", "algo.ppo.optimizer=rmsprop"), "algo.ppo: PPOConfig.optimizer must be"),
         (("algo=physicsvae", "algo.vae.physicsvae_reduction=max"), "algo.vae.physicsvae_reduction: unknown"),
+        (("algo=physicsvae", "algo.vae.alpha=-1"), "algo.vae.alpha must be non-negative"),
         (("algo=amp", "algo.discriminator.gp_features=whitened"), "algo.discriminator: gp_features: unknown"),
         (("algo=amp", "algo.discriminator.optimizer=lbfgs"), "algo.discriminator: optimizer: unknown"),
     ],
@@ -143,6 +138,57 @@ def test_bad_values_are_refused_with_their_key(override, message):
 def test_method_sections_are_checked_with_their_key(overrides, message):
     with pytest.raises(ConfigError, match=message):
         validate(composed(*overrides))
+
+
+@pytest.mark.parametrize(
+    "overrides",
+    [
+        ("algo=amp", "algo.world_model.lr=0.1"),  # a section of another method
+        ("algo=tracker", "algo.discriminator.w_gp=1"),
+        ("algo=amp", "algo.loop.balance_every=4"),  # ControlVAE's data balancing
+        ("algo=physicsvae", "algo.loop.overlap=true"),  # PPO's
+        ("algo=tracker", "algo.loop.warmup=10"),  # a replay-fed method's
+        ("algo=controlvae", "algo.vae.alpha=0.1"),  # PhysicsVAE's term of the VAE section
+        ("algo=physicsvae", "algo.vae.lambda_regu=0.1"),  # PULSE's
+    ],
+)
+def test_a_key_the_methods_config_lacks_is_refused_at_composition_with_the_key(overrides):
+    from hydra.errors import ConfigCompositionException
+
+    key = overrides[1].split("=")[0]
+    with pytest.raises(ConfigCompositionException, match=key.replace(".", r"\.")):
+        composed(*overrides)
+
+
+def plain(*overrides: str) -> dict:
+    from omegaconf import OmegaConf
+
+    return OmegaConf.to_container(composed(*overrides), resolve=True)
+
+
+def test_a_key_the_methods_config_lacks_is_refused_by_validate_with_the_key():
+    with pytest.raises(ConfigError, match=r"^algo.ppo.clip: the controlvae method .* has no ppo section"):
+        validate(composed("algo=controlvae", "+algo.ppo.clip=0.1"))  # appended on the command line
+    amp = plain("algo=amp")
+    amp["algo"]["world_model"] = {"lr": 0.1}
+    with pytest.raises(ConfigError, match=r"^algo.world_model.lr: the amp method \(orchestrator.algos.amp.AMP\) has"):
+        validate(amp)
+    amp = plain("algo=amp")
+    amp["algo"]["loop"]["vae_starts"] = "windows"
+    with pytest.raises(ConfigError, match=r"^algo.loop.vae_starts: the amp method .* has no such loop setting"):
+        validate(amp)
+
+
+def test_a_config_an_earlier_version_stored_reads_back_without_its_other_methods_keys():
+    """Before each method had its own config, a stored config had every section (null where unused) and every
+    method's loop knobs; read back from a store, those are dropped and the rest is the method's config."""
+    now = plain("algo=tracker")
+    former = plain("algo=tracker")
+    former["algo"].update(vae=None, world_model=None, discriminator=None)
+    former["algo"]["loop"].update(vae_starts="states", balance_every=200, warmup=1000)
+    assert validate(former, shipped_only=True) == validate(now)
+    with pytest.raises(ConfigError, match="^algo.vae: the tracker method"):  # a user's own config is not forgiven
+        validate(former)
 
 
 def test_type_errors_are_refused_at_composition_with_the_key():

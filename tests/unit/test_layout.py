@@ -192,3 +192,60 @@ def test_workers_keeps_its_modules_in_rooms():
     graph = import_graph()
     for module in ("workers.rollout", "workers.policies", "workers.recorders", "workers.distill"):
         assert not {t for t in graph[module] if t.startswith("workers.evaluation")}, module
+
+
+def method_configs() -> dict[str, type]:
+    """conf/algo/<name>.yaml → the config class of the method it names."""
+    from omegaconf import OmegaConf
+
+    from orchestrator.compose import CONF_DIR, find_method
+
+    return {
+        p.stem: find_method(str(OmegaConf.load(p)["_target_"])).config_class
+        for p in sorted((CONF_DIR / "algo").glob("*.yaml"))
+    }
+
+
+def test_each_method_declares_its_config_once_beside_it_and_its_yaml_names_it():
+    """Every method's config is its own class, declared in the method's module; the schema holds no union of them;
+    each conf/algo/<name>.yaml starts from its method's schema (`<name>_schema`)."""
+    from dataclasses import fields
+
+    from omegaconf import OmegaConf
+
+    import orchestrator.schema as schema
+    from orchestrator.compose import CONF_DIR, find_method
+
+    configs = method_configs()
+    for name, config in configs.items():
+        target = str(OmegaConf.load(CONF_DIR / "algo" / f"{name}.yaml")["_target_"])
+        assert config.__module__ == find_method(target).__module__, name
+        assert issubclass(config, schema.MethodConfig) and config is not schema.MethodConfig, name
+        defaults = OmegaConf.load(CONF_DIR / "algo" / f"{name}.yaml")["defaults"]
+        assert list(defaults) == [f"{name}_schema", "_self_"], name
+    # One class per method (a variant, the task's PPO trainer, shares its method's).
+    assert len(set(configs.values())) == len(configs)
+    assert {f.name for f in fields(schema.MethodConfig)} == {"_target_", "name", "loop", "needs"}
+    assert not hasattr(schema, "AlgoConfig") and not hasattr(schema, "SECTIONS")
+
+
+def test_no_method_yaml_restates_a_default_of_its_config():
+    """A value in conf/algo/<name>.yaml differs from its config's default: every default is written once."""
+    from omegaconf import OmegaConf
+
+    from orchestrator.compose import CONF_DIR
+
+    def restated(given, default, path):
+        for key, value in given.items():
+            where = f"{path}.{key}" if path else key
+            if isinstance(value, dict) and isinstance(default.get(key), dict):
+                yield from restated(value, default[key], where)
+            elif value == default.get(key, object()):
+                yield where
+
+    found = []
+    for name, config in method_configs().items():
+        given = OmegaConf.to_container(OmegaConf.load(CONF_DIR / "algo" / f"{name}.yaml"))
+        given = {k: v for k, v in given.items() if k not in ("defaults", "_target_", "name")}
+        found += [f"{name}: {key}" for key in restated(given, OmegaConf.to_container(OmegaConf.structured(config)), "")]
+    assert found == []

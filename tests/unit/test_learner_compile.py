@@ -10,7 +10,7 @@ import torch
 
 from workers.learners.base import Weights
 from workers.learners.discriminator import DiscriminatorBatch, DiscriminatorLearner
-from workers.learners.vae import VAEBatch, VAEConfig, VAELearner
+from workers.learners.vae import ControlVAEObjective, VAEBatch, VAELearner, vae_config
 from workers.learners.world_model import WorldModelBatch, WorldModelConfig, WorldModelLearner
 from workers.models.nets import Normalizer
 from workers.models.world_model import WorldModel
@@ -30,7 +30,9 @@ def _batch(n: int = 8, t: int = 3) -> WorldModelBatch:
 def _vae_learner() -> VAELearner:
     """A tiny ControlVAE learner, the same from the same seed."""
     torch.manual_seed(0)
-    config = VAEConfig(latent_dim=4, encoder_hidden=(16,), num_experts=2, policy_hidden=(16,), gate_hidden=(8,))
+    config = ControlVAEObjective(
+        latent_dim=4, encoder_hidden=(16,), num_experts=2, policy_hidden=(16,), gate_hidden=(8,)
+    )
     return VAELearner(NUM_BODIES, ACTION_DIM, config, world_model=WorldModel(NUM_BODIES, ACTION_DIM, (16,)))
 
 
@@ -171,7 +173,7 @@ def test_the_other_vae_objectives_compile_to_the_same_updates(objective: str, pr
     losses = []
     for compile_it in (False, True):
         torch.manual_seed(0)
-        config = VAEConfig(
+        config = vae_config(
             objective=objective, prior=prior, latent_dim=4, encoder_hidden=(16,), num_experts=2, policy_hidden=(16,)
         )
         vae = VAELearner(NUM_BODIES, ACTION_DIM, config, world_model=WorldModel(NUM_BODIES, ACTION_DIM, (16,)))

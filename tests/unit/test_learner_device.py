@@ -19,7 +19,7 @@ from workers.learners.base import DeviceError, Schedule, resolve_device
 from workers.learners.discriminator import DiscriminatorBatch, DiscriminatorConfig, DiscriminatorLearner
 from workers.learners.ppo import PPOConfig, PPOLearner, Rollout
 from workers.learners.task import TaskBatch, TaskConfig, TaskLearner
-from workers.learners.vae import VAEBatch, VAEConfig, VAELearner, build_controller
+from workers.learners.vae import VAEBatch, VAEConfig, VAELearner, build_controller, vae_config
 from workers.learners.world_model import WorldModelBatch, WorldModelConfig, WorldModelLearner, build_world_model
 from workers.models.body_state import pack
 
@@ -159,7 +159,7 @@ def learners(walk_run, device):
     def vae(objective, prior, **kw):
         def build(dev):
             wm = build_world_model(B, A, wm_cfg, DT) if objective != "pulse" else None
-            cfg = VAEConfig(objective=objective, prior=prior, **small, **kw)
+            cfg = vae_config(objective=objective, prior=prior, **small, **kw)
             return VAELearner(B, A, cfg, wm, seed=0, device=dev)
 
         return build

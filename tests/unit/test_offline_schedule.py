@@ -64,7 +64,7 @@ def test_a_regress_layer_trains_and_physicsvae_learns_through_it(walk_run, tmp_p
     """world_model.kind=regress (Table 2's layer): the stage's actor trains it on the demos and reports its
     held-out feature error; a PhysicsVAE with α > 0 takes its α term through the layer's s′ and reports
     heldout_sim_error without body positions (a regressor has none); ControlVAE cannot roll it out."""
-    from workers.learners.vae import VAEConfig, VAELearner
+    from workers.learners.vae import ControlVAEObjective, VAELearner
 
     demos = walk_demos(walk_run, episodes=6)
     regress = {"kind": "regress", "hidden": (32,), "activation": "relu", "batch_size": 32}
@@ -83,7 +83,9 @@ def test_a_regress_layer_trains_and_physicsvae_learns_through_it(walk_run, tmp_p
     out = actor.validate()
     assert out["heldout_sim_error"] > 0 and "heldout_next_pos_error" not in out
     with pytest.raises(ValueError, match="integrating world model"):
-        VAELearner(15, 28, VAEConfig(encoder_hidden=(8,), policy_hidden=(8,)), world_model=layer.learner.model)
+        VAELearner(
+            15, 28, ControlVAEObjective(encoder_hidden=(8,), policy_hidden=(8,)), world_model=layer.learner.model
+        )
 
 
 def _twins(walk_run, tmp_path, **offline):

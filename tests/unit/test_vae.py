@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -10,7 +11,7 @@ import torch
 from torch.distributions import Normal, kl_divergence
 
 from workers.learners.base import Schedule, Weights
-from workers.learners.vae import VAEBatch, VAEConfig, VAELearner
+from workers.learners.vae import ControlVAEObjective, VAEBatch, VAEConfig, VAELearner, vae_config
 from workers.losses.kl import gaussian_kl, latent_usage
 from workers.losses.vae import controlvae_loss, discounts, physicsvae_loss, pulse_loss
 from workers.models.vae import MixtureOfExperts, VAEController
@@ -165,7 +166,7 @@ def test_the_physicsvae_learner_uses_the_configured_reduction(walk_run):
     torch.testing.assert_close(terms["mean"]["kl"], terms["sum"]["kl"])
     assert float(terms["mean"]["sim"]) > 0
     with pytest.raises(ValueError, match="vae.physicsvae_reduction"):
-        VAEConfig(objective="physicsvae", prior="standard_normal", physicsvae_reduction="max")
+        vae_config(objective="physicsvae", prior="standard_normal", physicsvae_reduction="max")
 
 
 def test_the_plain_network_is_physicsvaes_table_2():
@@ -174,7 +175,7 @@ def test_the_plain_network_is_physicsvaes_table_2():
     from workers.learners.vae import build_controller
 
     d, z = 15 * 16 + 3, 32
-    cfg = VAEConfig(objective="physicsvae", prior="standard_normal", latent_dim=z, encoder_hidden=(256, 128),
+    cfg = vae_config(objective="physicsvae", prior="standard_normal", latent_dim=z, encoder_hidden=(256, 128),
                     policy="mlp", policy_hidden=(512, 512, 512), activation="relu", network="plain")  # fmt: skip
     vae = build_controller(15, 28, cfg)
     linears = [m for m in vae.posterior.modules() if isinstance(m, torch.nn.Linear)]
@@ -183,7 +184,7 @@ def test_the_plain_network_is_physicsvaes_table_2():
     assert [m.in_features for m in linears] == [d + z, 512, 512, 512] and linears[-1].out_features == 28
     assert not any(isinstance(m, (torch.nn.LayerNorm, torch.nn.ELU)) for m in vae.modules())
     assert any(isinstance(m, torch.nn.ReLU) for m in vae.modules())
-    ours = build_controller(15, 28, VAEConfig(objective="physicsvae", prior="standard_normal", latent_dim=z,
+    ours = build_controller(15, 28, vae_config(objective="physicsvae", prior="standard_normal", latent_dim=z,
                                               policy="mlp", policy_hidden=(512,)))  # fmt: skip
     assert any(isinstance(m, torch.nn.LayerNorm) for m in ours.policy.modules())
     s = torch.randn(4, d)
@@ -202,7 +203,7 @@ def test_pulse_regularises_consecutive_latents():
 
 
 def small_learner(objective: str = "controlvae", prior: str = "conditional", **kw) -> VAELearner:
-    cfg = VAEConfig(
+    cfg = vae_config(
         objective=objective,
         prior=prior,
         latent_dim=4,
@@ -324,7 +325,6 @@ def test_state_dict_round_trip_includes_optimizer(walk_run):
     [
         ("prior", "uniform", "vae.prior: unknown prior type 'uniform'"),
         ("objective", "gail", "vae.objective: unknown objective 'gail'"),
-        ("alpha", -1.0, "vae.alpha must be non-negative"),
         ("beta", Schedule(-0.1), "vae.beta must be non-negative"),
     ],
 )
@@ -333,9 +333,37 @@ def test_config_errors_name_the_key(field, value, message):
         VAEConfig(**{field: value})
 
 
+@pytest.mark.parametrize(
+    ("objective", "field", "value", "message"),
+    [
+        ("physicsvae", "alpha", -1.0, "vae.alpha must be non-negative"),
+        ("pulse", "lambda_regu", -0.1, "vae.lambda_regu must be non-negative"),
+        ("controlvae", "gamma", 1.5, "vae.gamma must be in"),
+    ],
+)
+def test_each_objective_checks_its_own_terms(objective, field, value, message):
+    with pytest.raises(ValueError, match=message):
+        vae_config(objective, **{field: value})
+    with pytest.raises(ValueError, match="vae.objective: this section's objective is 'controlvae', got 'pulse'"):
+        ControlVAEObjective(objective="pulse")
+
+
+def test_each_objective_has_only_its_own_terms_and_its_learner_takes_only_its_section():
+    """α is PhysicsVAE's, λ_regu PULSE's, Eq. 12/16's weights ControlVAE's; a learner of one objective refuses the
+    shared part alone, which has none of them."""
+    own = {"controlvae": {"gamma", "w_a1", "w_a2", "state_weights"}, "physicsvae": {"alpha", "physicsvae_reduction"},
+           "pulse": {"lambda_regu"}}  # fmt: skip
+    shared = {f.name for f in dataclasses.fields(VAEConfig)}
+    for objective, terms in own.items():
+        config = vae_config(objective)
+        assert {f.name for f in dataclasses.fields(config)} - shared == terms and config.objective == objective
+    with pytest.raises(TypeError, match="takes a PhysicsVAEObjective"):
+        VAELearner(15, 28, VAEConfig(objective="physicsvae", prior="standard_normal"))
+
+
 def test_controlvae_without_world_model_is_an_error():
     with pytest.raises(ValueError, match="needs a world model"):
-        VAELearner(15, 28, VAEConfig(), world_model=None)
+        VAELearner(15, 28, ControlVAEObjective(), world_model=None)
 
 
 def test_the_prior_switches_change_what_is_sampled(walk_run):
@@ -367,7 +395,7 @@ def test_single_state_starts_feed_the_normaliser_from_their_own_states(character
     from workers.models.world_model import WorldModel
 
     b, a = character.num_bodies, character.num_actions
-    config = VAEConfig(latent_dim=4, encoder_hidden=(16,), policy="mlp", policy_hidden=(16,), batch_size=3,
+    config = ControlVAEObjective(latent_dim=4, encoder_hidden=(16,), policy="mlp", policy_hidden=(16,), batch_size=3,
                        rollout_steps=2)  # fmt: skip
     learner = VAELearner(b, a, config, world_model=WorldModel(b, a, (16,), "elu", 1 / 30, "semi_implicit"))
     rng = np.random.default_rng(0)
@@ -385,7 +413,9 @@ def test_vae_nc_is_controlvae_with_a_unit_posterior():
 
     nc = VAEConfig(prior="standard_normal", latent_dim=3, encoder_hidden=(8,), policy="mlp", policy_hidden=(8,))
     assert nc.posterior_std == 1.0
-    assert VAEConfig(objective="pulse", prior="standard_normal").posterior_std is None  # PULSE's no-prior row learns it
+    assert (
+        vae_config(objective="pulse", prior="standard_normal").posterior_std is None
+    )  # PULSE's no-prior row learns it
     torch.manual_seed(0)
     vae = build_controller(2, 4, nc)
     s, s_next = torch.randn(5, vae.state_norm.mean.shape[0]), torch.randn(5, vae.state_norm.mean.shape[0])
@@ -430,7 +460,7 @@ def test_pulses_mimic_goal_is_what_its_posterior_reads_and_shows_drift(walk_run)
         by_hand = kl_divergence(Normal(q.mean, q.log_std.exp()), Normal(p.mean, p.log_std.exp())).sum(-1).mean()
     torch.testing.assert_close(terms["kl"], by_hand)
     with pytest.raises(ValueError, match="vae.goal"):
-        VAEConfig(objective="controlvae", goal="mimic")
+        vae_config(objective="controlvae", goal="mimic")
 
 
 @pytest.mark.parametrize(

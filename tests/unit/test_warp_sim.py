@@ -24,7 +24,7 @@ pytest.importorskip("mujoco_warp")
 
 from workers.body.features import amp_features, state_features  # noqa: E402
 from workers.learners.base import Weights  # noqa: E402
-from workers.learners.vae import VAEConfig, build_controller  # noqa: E402
+from workers.learners.vae import ControlVAEObjective, VAEConfig, build_controller  # noqa: E402
 from workers.models import device_features  # noqa: E402
 from workers.motion.library import MotionLibrary  # noqa: E402
 from workers.sim.env import BatchedSim, SimConfig, make_sim  # noqa: E402
@@ -251,7 +251,7 @@ def test_the_rewards_recorded_on_the_device_are_numpys(warp, character, library)
         assert on[key].shape == (1, N), key
         np.testing.assert_allclose(on[key][0], value, rtol=0, atol=1e-4, err_msg=key)
 
-    weights = state_weight_vector(character.num_bodies, VAEConfig().state_weights).numpy()
+    weights = state_weight_vector(character.num_bodies, ControlVAEObjective().state_weights).numpy()
     vae = VAEConfig(latent_dim=8, encoder_hidden=(32,), policy="mlp", policy_hidden=(64,))
     policy = VAEPolicy(character.num_bodies, character.num_actions, vae, 0.5)
     config = SimConfig(backend="warp", device=DEVICE, max_episode_steps=3)

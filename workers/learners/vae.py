@@ -34,7 +34,11 @@ OBJECTIVES = ("controlvae", "physicsvae", "pulse")
 
 @dataclass
 class VAEConfig:
-    # Training objective: controlvae | physicsvae | pulse.
+    """What the three objectives share: the controller's networks and prior, the optimiser, the batches and β. A
+    learner takes its objective's section (`OBJECTIVE_CONFIGS`: this with the terms of that loss); the networks
+    alone (`build_controller`, the rollout policy) are built from any of them."""
+
+    # Training objective: controlvae | physicsvae | pulse (each section's own, `OBJECTIVE_CONFIGS`).
     objective: str = "controlvae"
     # Prior over z: standard_normal | conditional | learned.
     prior: str = "conditional"
@@ -69,41 +73,23 @@ class VAEConfig:
     # Trajectories per update (N_VAE 512) and their length (T_VAE 24).
     batch_size: int = 512
     rollout_steps: int = 24
-    # Discount of the rollout losses (ControlVAE 0.95).
-    gamma: float = 0.95
     # β on the KL term: ControlVAE raises it from 0.01 to 0.1 every 500 epochs (8 updates each).
     beta: Schedule = field(default_factory=lambda: Schedule(0.01, 0.1, kind="staircase", steps=40_000, every=4_000))
-    # α, PhysicsVAE's simulation-consistency weight (Table 1: 1e-4).
-    alpha: float = 1e-4
-    # How PhysicsVAE's Eq. 1 reduces its squared errors over the action and state dimensions: mean (the
-    # authors' nn.MSELoss, the scale of Table 1's α and β and of Fig. 9's α axis) | sum (Eq. 1 as printed).
-    physicsvae_reduction: str = "mean"
     # What the posterior is given as the goal (workers/models/tracking_goal.py): reference (s̃_{t+1}, the reference's
     # next state in its own heading frame: ControlVAE's) | mimic (PULSE's s_g-mimic, §4.1: the reference's next
     # state as offsets from the character, which shows drift). mimic under the pulse objective only.
     goal: str = "reference"
-    # λ on PULSE's latent smoothness L_regu.
-    lambda_regu: float = 0.01
-    # Action regularisation of Eq. 12: L1 and squared-L2 weights.
-    w_a1: float = 0.0
-    w_a2: float = 0.01
-    # W of Eq. 16, by part of s: body positions, 6D rotations, velocities, angular velocities, heights, root up.
-    state_weights: dict[str, float] = field(
-        default_factory=lambda: {"pos": 1.0, "rot": 1.0, "lin_vel": 0.1, "ang_vel": 0.05, "height": 1.0, "up": 1.0}
-    )
 
     def __post_init__(self) -> None:
         if self.objective not in OBJECTIVES:
             raise ValueError(f"vae.objective: unknown objective {self.objective!r}; expected one of {OBJECTIVES}")
+        if type(self) not in (VAEConfig, OBJECTIVE_CONFIGS[self.objective]):
+            own = type(self).__dataclass_fields__["objective"].default
+            raise ValueError(f"vae.objective: this section's objective is {own!r}, got {self.objective!r}")
         if self.prior not in PRIOR_TYPES:
             raise ValueError(f"vae.prior: unknown prior type {self.prior!r}; expected one of {PRIOR_TYPES}")
         if self.network not in ("concat", "plain"):
             raise ValueError(f"vae.network: unknown network {self.network!r}; expected 'concat' or 'plain'")
-        if self.physicsvae_reduction not in PHYSICSVAE_REDUCTIONS:
-            raise ValueError(
-                f"vae.physicsvae_reduction: unknown reduction {self.physicsvae_reduction!r}; "
-                f"expected one of {PHYSICSVAE_REDUCTIONS}"
-            )
         if self.goal not in GOALS:
             raise ValueError(f"vae.goal: unknown goal {self.goal!r}; expected one of {GOALS}")
         if self.goal != "reference" and self.objective != "pulse":
@@ -119,13 +105,91 @@ class VAEConfig:
             self.posterior_std = 1.0  # VAE-NC exactly: prior type alone varies, not the posterior's noise
         if self.posterior_std is not None and self.posterior_std <= 0:
             raise ValueError(f"vae.posterior_std must be positive, got {self.posterior_std}")
-        for key in ("alpha", "lambda_regu", "w_a1", "w_a2", "action_noise"):
-            if getattr(self, key) < 0:
-                raise ValueError(f"vae.{key} must be non-negative, got {getattr(self, key)}")
+        if self.action_noise < 0:
+            raise ValueError(f"vae.action_noise must be non-negative, got {self.action_noise}")
         if self.beta.start < 0 or (self.beta.end is not None and self.beta.end < 0):
             raise ValueError("vae.beta must be non-negative")
+
+    def _non_negative(self, *keys: str) -> None:
+        for key in keys:
+            if getattr(self, key) < 0:
+                raise ValueError(f"vae.{key} must be non-negative, got {getattr(self, key)}")
+
+
+@dataclass
+class ControlVAEObjective(VAEConfig):
+    """The controlvae objective's section: Eq. 16's reconstruction through the world model, Eq. 12's action terms."""
+
+    objective: str = "controlvae"
+    # Discount of the rollout losses (ControlVAE 0.95).
+    gamma: float = 0.95
+    # Action regularisation of Eq. 12: L1 and squared-L2 weights.
+    w_a1: float = 0.0
+    w_a2: float = 0.01
+    # W of Eq. 16, by part of s: body positions, 6D rotations, velocities, angular velocities, heights, root up
+    # (also the weights of Eq. 20's tracking reward that the rollout workers record).
+    state_weights: dict[str, float] = field(
+        default_factory=lambda: {"pos": 1.0, "rot": 1.0, "lin_vel": 0.1, "ang_vel": 0.05, "height": 1.0, "up": 1.0}
+    )
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        self._non_negative("w_a1", "w_a2")
         if not 0 < self.gamma <= 1:
             raise ValueError(f"vae.gamma must be in (0, 1], got {self.gamma}")
+
+
+@dataclass
+class PhysicsVAEObjective(VAEConfig):
+    """The physicsvae objective's section: Eq. 1's behaviour cloning and α-weighted simulation consistency."""
+
+    objective: str = "physicsvae"
+    # Eq. 1's KL is to N(0, I): the only prior this objective takes.
+    prior: str = "standard_normal"
+    # α, PhysicsVAE's simulation-consistency weight (Table 1: 1e-4).
+    alpha: float = 1e-4
+    # How PhysicsVAE's Eq. 1 reduces its squared errors over the action and state dimensions: mean, averaged over
+    # the 28 action and 243 state dimensions with the KL summed over the latent (the authors' trainer's
+    # nn.MSELoss, with which Table 1's α and β and Fig. 9's α axis were set) | sum (Eq. 1 as printed: α then
+    # weighs the state term 243/28 = 8.7x more, β 28x less).
+    physicsvae_reduction: str = "mean"
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        self._non_negative("alpha")
+        if self.physicsvae_reduction not in PHYSICSVAE_REDUCTIONS:
+            raise ValueError(
+                f"vae.physicsvae_reduction: unknown reduction {self.physicsvae_reduction!r}; "
+                f"expected one of {PHYSICSVAE_REDUCTIONS}"
+            )
+
+
+@dataclass
+class PulseObjective(VAEConfig):
+    """The pulse objective's section: Eq. 3's distillation with its latent smoothness term."""
+
+    objective: str = "pulse"
+    # λ on PULSE's latent smoothness L_regu.
+    lambda_regu: float = 0.01
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        self._non_negative("lambda_regu")
+
+
+# Each objective's section: the terms of its loss beside what every objective shares (`VAEConfig`).
+OBJECTIVE_CONFIGS: dict[str, type[VAEConfig]] = {
+    "controlvae": ControlVAEObjective,
+    "physicsvae": PhysicsVAEObjective,
+    "pulse": PulseObjective,
+}
+
+
+def vae_config(objective: str = "controlvae", **settings: Any) -> VAEConfig:
+    """The section of `objective` with `settings`."""
+    if objective not in OBJECTIVE_CONFIGS:
+        raise ValueError(f"vae.objective: unknown objective {objective!r}; expected one of {OBJECTIVES}")
+    return OBJECTIVE_CONFIGS[objective](**settings)
 
 
 @dataclass
@@ -187,7 +251,9 @@ class VAELearner(Learner):
         seed: int = 0,
         device: torch.device | str = "cpu",
     ):
-        self.config = c = config or VAEConfig()
+        self.config = c = config or ControlVAEObjective()
+        if not isinstance(c, OBJECTIVE_CONFIGS[c.objective]):
+            raise TypeError(f"the {c.objective} objective's learner takes a {OBJECTIVE_CONFIGS[c.objective].__name__}")
         self.action_dim = action_dim
         self.vae = build_controller(num_bodies, action_dim, c).to(device)
         optimizer = make_optimizer(c.optimizer, self.vae.parameters(), c.lr)
@@ -203,7 +269,8 @@ class VAELearner(Learner):
         if world_model is not None:
             world_model.to(self.device).requires_grad_(False)
             world_model.eval()
-        self.state_weights = state_weight_vector(num_bodies, c.state_weights).to(self.device)
+        if isinstance(c, ControlVAEObjective):
+            self.state_weights = state_weight_vector(num_bodies, c.state_weights).to(self.device)
         self.generator = torch.Generator(device=self.device).manual_seed(seed)
 
     def set_world_model_weights(self, weights: Weights) -> None:
