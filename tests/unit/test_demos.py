@@ -98,9 +98,12 @@ def test_a_broken_demos_file_is_refused_with_its_name(tmp_path, character, walk_
 
 def test_a_clips_expert_run_mirrored_on_its_mirror_gives_the_reflected_rollout(character, clip_cache):
     """One expert per clip, the mirrored clip driven by the original's expert mirrored (M∘π∘M): without noise,
-    from frame 0, the mirror's rollout is the original's reflected, body by body and action by action (MuJoCo
-    steps our symmetric character into the exact reflection), so the mirrored expert tracks the mirrored clip
-    exactly as well. A lopsided expert (random weights, offsets of ~0.1 rad) makes the check non-trivial."""
+    from frame 0, the mirror's rollout is the original's reflected, body by body and action by action, to rounding
+    (MuJoCo's sums over the mirrored bodies run in another order), so the mirrored expert tracks the mirrored clip
+    as well. A lopsided expert (random weights, offsets of ~0.1 rad) makes the check non-trivial. The rounding
+    grows about 2x a step (the walk is chaotic: 1e-7 rad at the first action, 5e-5 at the ninth and 2e-2 at the
+    sixteenth on an AMD EPYC here), so the reflection is compared over the first 8 steps, where a wrong map
+    is off by ~0.1 from the first."""
     from workers.body.mirror import FLIP_XZ, FLIP_Y, action_mirror, mirror_maps
     from workers.motion.library import MotionLibrary
 
@@ -116,8 +119,8 @@ def test_a_clips_expert_run_mirrored_on_its_mirror_gives_the_reflected_rollout(c
     worker = RolloutWorker(character, library, 2, policy, SimConfig(), seed=0)
     worker.set_weights(Weights(1, payload))
     plain, mirrored = worker.demonstrate(np.array([0, 1]), np.array([20, 20]))
-    steps = min(len(plain["actions"]), len(mirrored["actions"]))
-    assert steps >= 10
+    assert min(len(plain["actions"]), len(mirrored["actions"])) >= 10
+    steps = 8
     index, sign = action_mirror(character)
     offsets = plain["actions"][:steps] - character.qpos_to_action(
         library.state(np.zeros(steps, int), np.arange(1, steps + 1)).qpos
@@ -129,4 +132,4 @@ def test_a_clips_expert_run_mirrored_on_its_mirror_gives_the_reflected_rollout(c
     np.testing.assert_allclose(b[..., 0:3], a[:, perm, 0:3] * FLIP_Y, atol=1e-4)
     np.testing.assert_allclose(b[..., 3:7], a[:, perm, 3:7] * np.array([1.0, -1.0, 1.0, -1.0]), atol=1e-4)
     np.testing.assert_allclose(b[..., 10:13], a[:, perm, 10:13] * FLIP_XZ, atol=1e-3)
-    assert plain["tracking_error"] == pytest.approx(mirrored["tracking_error"], abs=1e-5)
+    assert plain["tracking_error"] == pytest.approx(mirrored["tracking_error"], rel=1e-3)  # over all 20 steps
