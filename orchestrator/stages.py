@@ -2,7 +2,7 @@
 
 A method names the stages it needs in `algo.needs`, role → spec (conf/algo/*.yaml):
 
-    needs: {demos: demos, world_model: world_model}
+    needs: {demos: demos, world_model: simulation_layer}
 
 A spec is either a stage, "<algo> [key=value ...]", composed from conf/ like a run of
 its own (`algo=<algo>` at this run's scale, its `algo_scale`, seed 0 unless the spec

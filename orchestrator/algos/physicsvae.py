@@ -1,6 +1,6 @@
 """PhysicsVAE (Won et al. 2022) in two offline stages on the expert's demos.
 
-`algo=world_model`: the simulation layer, the world model trained on the demos'
+`algo=simulation_layer`: the simulation layer, the world model trained on the demos'
 (state, action) windows, then frozen (PhysicsVAE trains it first, 300 epochs).
 `algo=physicsvae`: the conditional VAE on the demos' transitions by Eq. 1, behaviour
 cloning + α·simulation consistency through the frozen layer + β·KL to N(0, I)
@@ -30,7 +30,7 @@ from workers.policies import VAEPolicy
 
 @dataclass
 class OfflineConfig:
-    # Offline training on a demos dataset (the world_model and physicsvae stages): one iteration is one
+    # Offline training on a demos dataset (the simulation_layer and physicsvae stages): one iteration is one
     # epoch, a pass over the training transitions. PhysicsVAE: the learning rate decays x0.7 every 50 epochs.
     lr_decay: float = 0.7
     decay_every: int = 50

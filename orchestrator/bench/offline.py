@@ -34,7 +34,7 @@ def _learners(scale: str) -> dict[str, Any]:
     from workers.models import body_state
 
     vae_cfg = validate(compose(["algo=physicsvae", f"scale={scale}", "run_dir=."])).algo.vae
-    layer_cfg = validate(compose(["algo=world_model", f"scale={scale}", "run_dir=."])).algo.world_model
+    layer_cfg = validate(compose(["algo=simulation_layer", f"scale={scale}", "run_dir=."])).algo.world_model
     gen = torch.Generator().manual_seed(0)
     out = {}
     for name, n in (("vae", vae_cfg.batch_size), ("world_model", layer_cfg.batch_size)):

@@ -403,10 +403,14 @@ def test_rough_terrain_on_the_warp_simulator_is_refused_in_one_line(tmp_path, ca
 
 # i. Stage specs, joint maps and resumed runs, refused before anything runs ----------------------------------
 def test_a_bad_stage_spec_anywhere_in_the_chain_is_refused_before_any_stage_trains(tmp_path, capsys):
-    """physicsvae needs demos (from a tracker) and then a world_model stage: its broken need would be met only
+    """physicsvae needs demos (from a tracker) and then a simulation_layer stage: its broken need would be met only
     after the tracker and the demos had trained."""
     code, err = run_main(
-        tmp_path, capsys, "motion=walk", "algo=physicsvae", '+stage_overrides.world_model=["algo.needs.demos=nosuch"]'
+        tmp_path,
+        capsys,
+        "motion=walk",
+        "algo=physicsvae",
+        '+stage_overrides.simulation_layer=["algo.needs.demos=nosuch"]',
     )
     line = assert_refused(tmp_path, code, err, "algo.needs.demos", "'nosuch'")
     assert line.startswith("config error: ")

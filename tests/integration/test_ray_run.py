@@ -117,7 +117,7 @@ def test_amp_learners_run_as_named_actors_and_come_back_from_the_last_checkpoint
 
 
 def test_the_physicsvae_and_pulse_stages_run_on_ray_actors(smoke, tmp_path):
-    """tracker -> demos (collected by the Ray rollout workers) -> world_model -> physicsvae, then pulse on its
+    """tracker -> demos (collected by the Ray rollout workers) -> simulation_layer -> physicsvae, then pulse on its
     own expert (a tracker observing s_g-mimic), every learner an actor; each stage's run finishes in the
     shared store."""
     from mlflow.tracking import MlflowClient
@@ -135,7 +135,7 @@ def test_the_physicsvae_and_pulse_stages_run_on_ray_actors(smoke, tmp_path):
     assert {a: len(rs) for a, rs in by_algo.items()} == {
         "tracker": 2,
         "demos": 1,
-        "world_model": 1,
+        "simulation_layer": 1,
         "physicsvae": 1,
         "pulse": 1,
     }

@@ -1,4 +1,4 @@
-"""Stages with reuse, on the PhysicsVAE pipeline at smoke size: tracker -> demos -> world_model -> physicsvae.
+"""Stages with reuse, on the PhysicsVAE pipeline at smoke size: tracker -> demos -> simulation_layer -> physicsvae.
 
 One pipeline is trained once for the module into its own MLflow store; the tests then ask it for stages
 again (reused, or not), break its artifacts, and train PhysicsVAE on its data.
@@ -41,12 +41,12 @@ def pipeline(tmp_path_factory):
 
 def test_the_pipeline_ran_each_stage_once_and_linked_them(pipeline):
     uri = pipeline["uri"]
-    counts = {a: len(runs_of(uri, a)) for a in ("tracker", "demos", "world_model", "physicsvae")}
-    assert counts == {"tracker": 1, "demos": 1, "world_model": 1, "physicsvae": 1}
+    counts = {a: len(runs_of(uri, a)) for a in ("tracker", "demos", "simulation_layer", "physicsvae")}
+    assert counts == {"tracker": 1, "demos": 1, "simulation_layer": 1, "physicsvae": 1}
     pv = runs_of(uri, "physicsvae")[0]
     tags = pv.data.tags
     assert tags["upstream.demos"] == runs_of(uri, "demos")[0].info.run_id
-    assert tags["upstream.world_model"] == runs_of(uri, "world_model")[0].info.run_id
+    assert tags["upstream.world_model"] == runs_of(uri, "simulation_layer")[0].info.run_id
     assert tags["expert_run_id"] == runs_of(uri, "tracker")[0].info.run_id  # which expert it came from
     assert "expert/tracking_error_mean" in pv.data.metrics  # the expert's quality, reported downstream
     assert all(r.info.status == "FINISHED" for a in counts for r in runs_of(uri, a))
@@ -64,19 +64,19 @@ def test_an_identical_stage_is_reused_and_a_changed_alpha_is_not(pipeline):
     )
     assert not changed.reused and changed.stage_hash != same.stage_hash
     assert len(runs_of(uri, "physicsvae")) == 2
-    assert len(runs_of(uri, "tracker")) == 1 and len(runs_of(uri, "world_model")) == 1  # upstream reused
+    assert len(runs_of(uri, "tracker")) == 1 and len(runs_of(uri, "simulation_layer")) == 1  # upstream reused
 
 
 def test_a_changed_upstream_stage_invalidates_the_ones_below(pipeline):
     cfg, uri = pipeline["cfg"], pipeline["uri"]
     before = runs_of(uri, "physicsvae")[0].data.tags["stage_hash"]
     algo = dataclasses.replace(
-        cfg.algo, needs={**cfg.algo.needs, "world_model": "world_model algo.world_model.lr=0.002"}
+        cfg.algo, needs={**cfg.algo.needs, "world_model": "simulation_layer algo.world_model.lr=0.002"}
     )
     changed = dataclasses.replace(cfg, algo=algo, run_dir=str(pipeline["root"] / "new-layer"))
     run(changed)
     new = [r for r in runs_of(uri, "physicsvae") if r.data.tags["stage_hash"] != before]
-    layer_runs = runs_of(uri, "world_model")
+    layer_runs = runs_of(uri, "simulation_layer")
     assert len(layer_runs) == 2  # the layer was retrained with its new setting ...
     assert any(r.data.tags["upstream.world_model"] not in {w.info.run_id for w in layer_runs[1:]} for r in new)
     tags = [r for r in new if r.data.tags["upstream.world_model.reused"] == "false"][0].data.tags
@@ -146,7 +146,7 @@ def test_physicsvae_alpha_pulls_the_simulated_next_states_toward_the_demos(pipel
     spec = "demos algo.demos.rollouts_per_clip=40 algo.demos.seconds=4"
     demos, _ = load_demos(stages.ensure("demos", spec, cfg, uri, root / "d40", "default", train_stage, print))
     offline = dataclasses.replace(cfg.algo.offline, holdout_rollouts=8)
-    wm_cfg = smoke_config(root / "unused", "algo=world_model")
+    wm_cfg = smoke_config(root / "unused", "algo=simulation_layer")
     wm_cfg = dataclasses.replace(wm_cfg, algo=dataclasses.replace(wm_cfg.algo, offline=offline))
     torch.manual_seed(0)
     layer = SimulationLayerActor(wm_cfg, demos, 15, 28)
@@ -182,11 +182,11 @@ def test_ablation_alpha_smoke_gives_a_parent_with_a_child_per_point_the_stages_a
     alphas = sorted(float(c.data.params["algo.vae.alpha"]) for c in children)
     assert alphas == [0.0, 1e-4, 3e-4, 1e-3, 3e-3, 1e-2]
     store = info["store"]
-    assert len(runs_of(store, "tracker")) == 1 and len(runs_of(store, "world_model")) == 1
+    assert len(runs_of(store, "tracker")) == 1 and len(runs_of(store, "simulation_layer")) == 1
     expert = runs_of(store, "tracker")[0].info.run_id
     assert {c.data.tags["expert_run_id"] for c in children} == {expert}
     assert parent.data.tags["upstream.demos.expert.0"] == expert  # the parent links every stage it used (one per clip)
-    assert parent.data.tags["upstream.world_model"] == runs_of(store, "world_model")[0].info.run_id
+    assert parent.data.tags["upstream.world_model"] == runs_of(store, "simulation_layer")[0].info.run_id
     assert all(c.data.tags["upstream.world_model.reused"] == "true" for c in children)
     artifacts = {a.path for a in client.list_artifacts(parent.info.run_id)}
     assert {"spread.png", "comparison.png", "comparison.md", "stages.json"} <= artifacts
@@ -295,14 +295,14 @@ def test_a_sweep_says_what_it_will_train_and_how_long_it_should_take(pipeline, t
     cfg = smoke_config(tmp_path / "pv", "algo=physicsvae", "motion=locomotion", clips)
     empty = f"sqlite:///{tmp_path / 'empty.db'}"
     todo = stages.pending(cfg, empty, "default")
-    assert [c.algo.name for c in todo] == ["tracker", "tracker", "demos", "world_model"]
+    assert [c.algo.name for c in todo] == ["tracker", "tracker", "demos", "simulation_layer"]
     assert [c.motion.clips for c in todo[:2]] == [["humanoid3d_walk"], ["humanoid3d_run"]]
-    minutes = {"tracker": 20.0, "demos": 1.0, "world_model": 5.0}
+    minutes = {"tracker": 20.0, "demos": 1.0, "simulation_layer": 5.0}
     with mock.patch.object(stages, "pending", return_value=[_minutes(c, minutes[c.algo.name]) for c in todo]):
         said = stages.expected_time(_minutes(cfg, 10.0), empty, "default", points=6, jobs=2)
     # 2 x 20 + 1 + 5 for the stages, then 6 points two at a time: 3 rounds of 10.
     assert said.startswith("expected time on a 2-core machine: about 76 min (2 tracker stages 40 min; 1 demos")
     assert "6 runs of physicsvae, 2 at a time, 30 min" in said and "not measured" not in said
     unmeasured = stages.expected_time(cfg, empty, "default")
-    assert "not measured at scale smoke: tracker, demos, world_model, physicsvae" in unmeasured
+    assert "not measured at scale smoke: tracker, demos, simulation_layer, physicsvae" in unmeasured
     assert stages.pending(pipeline["cfg"], pipeline["uri"], "default") == []  # the pipeline's store holds them all

@@ -35,16 +35,16 @@ def small(algo: str, tmp_path, **section):
     return dataclasses.replace(cfg, algo=dataclasses.replace(cfg.algo, offline=offline, **parts))
 
 
-@pytest.mark.parametrize("algo", ["world_model", "physicsvae"])
+@pytest.mark.parametrize("algo", ["simulation_layer", "physicsvae"])
 def test_the_learning_rate_falls_by_0_7_every_50_epochs(walk_run, tmp_path, algo):
     demos = walk_demos(walk_run)
-    if algo == "world_model":
+    if algo == "simulation_layer":
         cfg = small(algo, tmp_path, world_model={"hidden": (8,), "batch_size": 64})
         actor = SimulationLayerActor(cfg, demos, 15, 28)
         base = cfg.algo.world_model.lr
     else:
         cfg = small(algo, tmp_path, vae={"encoder_hidden": (8,), "policy_hidden": (8,), "batch_size": 64, "alpha": 0.0})
-        wm = small("world_model", tmp_path, world_model={"hidden": (8,)}).algo.world_model
+        wm = small("simulation_layer", tmp_path, world_model={"hidden": (8,)}).algo.world_model
         layer = build_world_model(15, 28, wm, 1 / 30).state_dict()
         actor = PhysicsVAEActor(cfg, demos, 15, 28, (wm, layer))
         base = cfg.algo.vae.lr
@@ -68,7 +68,7 @@ def test_a_regress_layer_trains_and_physicsvae_learns_through_it(walk_run, tmp_p
 
     demos = walk_demos(walk_run, episodes=6)
     regress = {"kind": "regress", "hidden": (32,), "activation": "relu", "batch_size": 32}
-    cfg = small("world_model", tmp_path, world_model=regress)
+    cfg = small("simulation_layer", tmp_path, world_model=regress)
     torch.manual_seed(0)
     layer = SimulationLayerActor(cfg, demos, 15, 28)
     before = layer.validate()["heldout_feature_mse_1"]
@@ -92,7 +92,7 @@ def _twins(walk_run, tmp_path, **offline):
     """A regress layer's actor and a PhysicsVAE actor (α > 0, through that layer), seeded alike."""
     demos = walk_demos(walk_run, episodes=6)
     regress = {"kind": "regress", "hidden": (32,), "activation": "relu", "batch_size": 32}
-    cfg = small("world_model", tmp_path, world_model=regress)
+    cfg = small("simulation_layer", tmp_path, world_model=regress)
     cfg = dataclasses.replace(
         cfg, algo=dataclasses.replace(cfg.algo, offline=dataclasses.replace(cfg.algo.offline, **offline))
     )

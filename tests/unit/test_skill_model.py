@@ -47,7 +47,7 @@ def test_pulse_passes_its_prior_action_switch_and_has_no_world_model():
         skill_model(up, world_model=True)
 
 
-@pytest.mark.parametrize("algo", ["tracker", "amp", "world_model", "task"])
+@pytest.mark.parametrize("algo", ["tracker", "amp", "simulation_layer", "task"])
 def test_runs_without_a_vae_controller_are_refused_by_name(algo):
     with pytest.raises(StageError, match=rf"run abc123\): a {algo} run is not a skill model"):
         skill_model(StoredRun(algo, {}), world_model=False)

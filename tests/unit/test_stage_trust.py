@@ -190,7 +190,7 @@ def test_every_spec_of_the_chain_is_checked_before_any_stage_trains(store, tmp_p
     trained: list[str] = []
     # physicsvae needs demos (from a tracker), then a world_model stage, whose own demos need is broken here:
     # resolved in turn, the tracker and the demos would train before the bad spec is met.
-    cfg = config(tmp_path, "algo=physicsvae", '+stage_overrides.world_model=["algo.needs.demos=nosuchmethod"]')
+    cfg = config(tmp_path, "algo=physicsvae", '+stage_overrides.simulation_layer=["algo.needs.demos=nosuchmethod"]')
     with pytest.raises(ConfigError, match=r"algo.needs.demos: cannot compose stage 'nosuchmethod'"):
         stages.resolve(cfg, uri, tmp_path, "mine", lambda c, a, h: trained.append(h), log=lambda m: None)
     assert trained == []
