@@ -8,8 +8,7 @@ import numpy as np
 import pytest
 
 from workers.body import rotations as rot
-from workers.losses.task import VR_POINTS
-from workers.models.body_state import pack
+from workers.models.body_state import VR_POINTS, pack
 from workers.sim.env import BatchedSim
 from workers.task.goals import (
     HEIGHT_HIGH_M,

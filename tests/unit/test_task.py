@@ -9,9 +9,9 @@ import pytest
 import torch
 
 from workers.learners.task import TaskBatch, TaskConfig, TaskLearner
-from workers.losses.task import angle_difference, fall_penalty, goal_observation, task_loss
+from workers.losses.task import angle_difference, fall_penalty, task_loss
 from workers.models import body_state as B
-from workers.models.task import TaskPolicy
+from workers.models.task import TaskPolicy, goal_observation
 from workers.models.vae import VAEController
 from workers.models.world_model import WorldModel
 

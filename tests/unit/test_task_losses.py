@@ -10,15 +10,12 @@ import torch
 from workers.losses.task import (
     DEFAULT_WEIGHTS,
     GOAL_DIMS,
-    VR_POINTS,
-    goal_observation,
-    goal_observation_dim,
     task_loss,
     task_reward,
     task_terms,
-    vr_points,
 )
-from workers.models.body_state import quat_mul
+from workers.models.body_state import VR_POINTS, quat_mul, vr_points
+from workers.models.task import goal_observation, goal_observation_dim
 
 NUM_BODIES = 15
 HEAD, LEFT_HAND, RIGHT_HAND = (body for _, body, _ in VR_POINTS)

@@ -16,9 +16,9 @@ import numpy as np
 import torch
 
 from workers.learners.base import Learner, Weights, make_optimizer
-from workers.losses.task import DEFAULT_WEIGHTS, GOAL_DIMS, goal_observation, goal_observation_dim, task_loss
+from workers.losses.task import DEFAULT_WEIGHTS, GOAL_DIMS, task_loss
 from workers.models import body_state
-from workers.models.task import TaskPolicy
+from workers.models.task import TaskPolicy, goal_observation, goal_observation_dim
 from workers.models.vae import VAEController
 from workers.models.world_model import WorldModel
 

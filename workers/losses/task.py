@@ -23,22 +23,9 @@ from collections.abc import Mapping
 
 import torch
 
-from workers.models.body_state import LIN, POS, QUAT, quat_to_matrix, yaw, yaw_matrix
+from workers.models.body_state import LIN, POS, QUAT, VR_TERMS, vr_points, yaw
 
 GOAL_DIMS = {"heading": 2, "height": 1, "steering": 3, "point_goal": 2, "vr": 9}
-
-# The points a VR rig tracks, as (term, body index, offset in the body's frame) on our humanoid
-# (workers/body/assets/humanoid.xml, bodies in file order without the world). The humanoid has no head
-# body: the neck body (2) carries the head, a sphere of radius 0.1025 m centred 0.175 m above the neck
-# joint, so the headset is that sphere's centre, where the neck body's origin (the joint, at the base
-# of the neck) would not move with the head at all. The hands are the wrist bodies (right 5, left 8),
-# whose hand spheres sit at their origins. tests/unit/test_task_losses.py checks these against the model.
-VR_POINTS = (
-    ("head", 2, (0.0, 0.0, 0.175)),
-    ("left_hand", 8, (0.0, 0.0, 0.0)),
-    ("right_hand", 5, (0.0, 0.0, 0.0)),
-)
-VR_TERMS = tuple(name for name, _, _ in VR_POINTS)
 
 
 def angle_difference(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -91,14 +78,6 @@ def point_goal_terms(bs: torch.Tensor, goal: torch.Tensor) -> dict[str, torch.Te
     return {"distance": _norm(goal[..., :2] - bs[..., 0, POS][..., :2])}
 
 
-def vr_points(bs: torch.Tensor) -> torch.Tensor:
-    """World positions [..., 3, 3] of the tracked points (head, left hand, right hand) of body states [..., B, 13]."""
-    index = [body for _, body, _ in VR_POINTS]
-    offset = torch.tensor([o for _, _, o in VR_POINTS], dtype=bs.dtype, device=bs.device)  # [3, 3]
-    pos, quat = bs[..., index, POS], bs[..., index, QUAT]
-    return pos + (quat_to_matrix(quat) @ offset.unsqueeze(-1)).squeeze(-1)
-
-
 def vr_terms(bs: torch.Tensor, goal: torch.Tensor) -> dict[str, torch.Tensor]:
     """Distance (metres) of each tracked point to its target: head, left_hand, right_hand."""
     d = _norm(vr_points(bs) - goal.unflatten(-1, (3, 3)))  # [N, 3]
@@ -149,49 +128,3 @@ def task_reward(task: str, bs: torch.Tensor, goal: torch.Tensor, weights: Mappin
     so its reward exceeds 1 there."""
     terms = task_terms(task, bs, goal)
     return torch.exp(-sum(weights[k] * v for k, v in terms.items()))
-
-
-def _to_heading_frame(heading: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
-    """World vectors v [N, K, 3] in the heading frame of yaw angles heading [N]."""
-    return (yaw_matrix(-heading).unsqueeze(-3) @ v.unsqueeze(-1)).squeeze(-1)
-
-
-def goal_observation(task: str, bs: torch.Tensor, goal: torch.Tensor) -> torch.Tensor:
-    """What the task policy sees of the goal [N, G_obs], in the character's heading frame (rotation
-    about the vertical and horizontal translation of the whole scene leave it unchanged):
-
-      heading     cos, sin of θ* − θ_h; v*                                          (3)
-      height      H                                                                (1)
-      steering    cos, sin of θ_h* − θ_h and of θ_v* − θ_h; v*                     (5)
-      point_goal  the target relative to the root (x, y) and its distance           (3)
-      vr          each target relative to the root (9), then each target relative to its tracked
-                  point (9): the error to close, which the policy would otherwise have to work out
-                  from the neck's rotation (the head point is offset from its body) (18)
-    """
-    if task not in TASK_TERMS:
-        raise ValueError(f"unknown task {task!r}; expected one of {sorted(TASK_TERMS)}")
-    heading = yaw(bs[..., 0, QUAT])
-    if task == "heading":
-        d = goal[..., 0] - heading
-        return torch.stack((torch.cos(d), torch.sin(d), goal[..., 1]), dim=-1)
-    if task == "height":
-        return goal[..., :1]
-    if task == "steering":
-        dh, dv = goal[..., 0] - heading, goal[..., 1] - heading
-        return torch.stack((torch.cos(dh), torch.sin(dh), torch.cos(dv), torch.sin(dv), goal[..., 2]), dim=-1)
-    if task == "point_goal":
-        rel = torch.zeros(goal.shape[:-1] + (3,), dtype=goal.dtype, device=goal.device)
-        rel[..., :2] = goal[..., :2] - bs[..., 0, POS][..., :2]
-        local = _to_heading_frame(heading, rel.unsqueeze(-2))[..., 0, :2]
-        return torch.cat((local, local.norm(dim=-1, keepdim=True)), dim=-1)
-    targets = goal.unflatten(-1, (3, 3))  # vr
-    root = _to_heading_frame(heading, targets - bs[..., :1, POS])
-    error = _to_heading_frame(heading, targets - vr_points(bs))
-    return torch.cat((root.flatten(-2), error.flatten(-2)), dim=-1)
-
-
-GOAL_OBSERVATION_DIMS = {"heading": 3, "height": 1, "steering": 5, "point_goal": 3, "vr": 18}
-
-
-def goal_observation_dim(task: str) -> int:
-    return GOAL_OBSERVATION_DIMS[task]

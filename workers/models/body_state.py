@@ -1,4 +1,5 @@
-"""The full rigid-body state in torch: packing, ControlVAE's features s, and forward-Euler integration.
+"""The full rigid-body state in torch: packing, ControlVAE's features s, forward-Euler integration, and the
+points a VR rig tracks.
 
 A body state is a tensor [..., B, 13] holding, per body and in world coordinates,
 position (0:3), rotation quaternion w, x, y, z (3:7), linear velocity of the body
@@ -23,6 +24,19 @@ if TYPE_CHECKING:
 
 POS, QUAT, LIN, ANG = slice(0, 3), slice(3, 7), slice(7, 10), slice(10, 13)
 BODY_STATE_SIZE = 13
+
+# The points a VR rig tracks, as (term, body index, offset in the body's frame) on our humanoid
+# (workers/body/assets/humanoid.xml, bodies in file order without the world). The humanoid has no head
+# body: the neck body (2) carries the head, a sphere of radius 0.1025 m centred 0.175 m above the neck
+# joint, so the headset is that sphere's centre, where the neck body's origin (the joint, at the base
+# of the neck) would not move with the head at all. The hands are the wrist bodies (right 5, left 8),
+# whose hand spheres sit at their origins. tests/unit/test_task_losses.py checks these against the model.
+VR_POINTS = (
+    ("head", 2, (0.0, 0.0, 0.175)),
+    ("left_hand", 8, (0.0, 0.0, 0.0)),
+    ("right_hand", 5, (0.0, 0.0, 0.0)),
+)
+VR_TERMS = tuple(name for name, _, _ in VR_POINTS)
 
 
 def pack(kin: KinState) -> np.ndarray:
@@ -81,6 +95,14 @@ def quat_from_rotvec(v: torch.Tensor) -> torch.Tensor:
     # sin(θ/2)/θ, by its Taylor series near zero.
     scale = torch.where(small, 0.5 - angle2 / 48.0, torch.sin(0.5 * angle) / angle)
     return torch.cat((torch.cos(0.5 * angle), v * scale), dim=-1)
+
+
+def vr_points(bs: torch.Tensor) -> torch.Tensor:
+    """World positions [..., 3, 3] of the tracked points (head, left hand, right hand) of body states [..., B, 13]."""
+    index = [body for _, body, _ in VR_POINTS]
+    offset = torch.tensor([o for _, _, o in VR_POINTS], dtype=bs.dtype, device=bs.device)  # [3, 3]
+    pos, quat = bs[..., index, POS], bs[..., index, QUAT]
+    return pos + (quat_to_matrix(quat) @ offset.unsqueeze(-1)).squeeze(-1)
 
 
 def yaw(q: torch.Tensor) -> torch.Tensor:

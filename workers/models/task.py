@@ -7,6 +7,8 @@ policy is a Gaussian around that mean with the prior's standard deviation, sampl
 with the reparameterisation trick (`eps`). The action is the frozen decoder's,
 plus the helper branch Δa = σ · tanh(H(s, z)) when σ > 0 (PhysicsVAE Eq. 2), so
 that no action dimension moves by more than σ from what the decoder would do.
+
+`goal_observation` is what the policy sees of its goal: the goal in the character's heading frame.
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ from collections.abc import Sequence
 import torch
 from torch import nn
 
+from workers.models.body_state import POS, QUAT, vr_points, yaw, yaw_matrix
 from workers.models.nets import Normalizer, mlp
 from workers.models.vae import VAEController
 
@@ -81,3 +84,49 @@ class TaskPolicy(nn.Module):
         if self.helper is None:
             return decoded, decoded, mu_g
         return decoded + self.helper_offset(s, z), decoded, mu_g
+
+
+GOAL_OBSERVATION_DIMS = {"heading": 3, "height": 1, "steering": 5, "point_goal": 3, "vr": 18}
+
+
+def _to_heading_frame(heading: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    """World vectors v [N, K, 3] in the heading frame of yaw angles heading [N]."""
+    return (yaw_matrix(-heading).unsqueeze(-3) @ v.unsqueeze(-1)).squeeze(-1)
+
+
+def goal_observation(task: str, bs: torch.Tensor, goal: torch.Tensor) -> torch.Tensor:
+    """What the task policy sees of the goal [N, G_obs], in the character's heading frame (rotation
+    about the vertical and horizontal translation of the whole scene leave it unchanged):
+
+      heading     cos, sin of θ* − θ_h; v*                                          (3)
+      height      H                                                                (1)
+      steering    cos, sin of θ_h* − θ_h and of θ_v* − θ_h; v*                     (5)
+      point_goal  the target relative to the root (x, y) and its distance           (3)
+      vr          each target relative to the root (9), then each target relative to its tracked
+                  point (9): the error to close, which the policy would otherwise have to work out
+                  from the neck's rotation (the head point is offset from its body) (18)
+    """
+    if task not in GOAL_OBSERVATION_DIMS:
+        raise ValueError(f"unknown task {task!r}; expected one of {sorted(GOAL_OBSERVATION_DIMS)}")
+    heading = yaw(bs[..., 0, QUAT])
+    if task == "heading":
+        d = goal[..., 0] - heading
+        return torch.stack((torch.cos(d), torch.sin(d), goal[..., 1]), dim=-1)
+    if task == "height":
+        return goal[..., :1]
+    if task == "steering":
+        dh, dv = goal[..., 0] - heading, goal[..., 1] - heading
+        return torch.stack((torch.cos(dh), torch.sin(dh), torch.cos(dv), torch.sin(dv), goal[..., 2]), dim=-1)
+    if task == "point_goal":
+        rel = torch.zeros(goal.shape[:-1] + (3,), dtype=goal.dtype, device=goal.device)
+        rel[..., :2] = goal[..., :2] - bs[..., 0, POS][..., :2]
+        local = _to_heading_frame(heading, rel.unsqueeze(-2))[..., 0, :2]
+        return torch.cat((local, local.norm(dim=-1, keepdim=True)), dim=-1)
+    targets = goal.unflatten(-1, (3, 3))  # vr
+    root = _to_heading_frame(heading, targets - bs[..., :1, POS])
+    error = _to_heading_frame(heading, targets - vr_points(bs))
+    return torch.cat((root.flatten(-2), error.flatten(-2)), dim=-1)
+
+
+def goal_observation_dim(task: str) -> int:
+    return GOAL_OBSERVATION_DIMS[task]

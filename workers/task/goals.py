@@ -21,7 +21,7 @@ its 20 Hz, 2.4 s or 0.42/s at our 30 Hz). Ranges (`DEFAULT_RANGES`, overridden b
   steering    θ_h*, θ_v* ∈ [−π, π] (world), v* ∈ [0, 3] m/s      ControlVAE §4.3
   height      H ∈ {−1, +1}, equally likely                        ControlVAE §4.3
   point_goal  a target on the ground 1–5 m from the root, at a uniform bearing
-  vr          the head and hands of the environment's reference clip (`workers.losses.task.VR_POINTS`)
+  vr          the head and hands of the environment's reference clip (`workers.models.body_state.VR_POINTS`)
               one frame ahead: the positions to reach by the end of the coming step, which is where
               the step's loss and success are measured. These goals follow the clip and never "change".
 """
@@ -35,8 +35,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 
-from workers.losses.task import GOAL_DIMS, VR_TERMS, task_terms, vr_points
-from workers.models.body_state import pack
+from workers.losses.task import GOAL_DIMS, task_terms
+from workers.models.body_state import VR_TERMS, pack, vr_points
 
 if TYPE_CHECKING:
     from workers.sim.env import Simulator

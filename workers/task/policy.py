@@ -25,10 +25,11 @@ import torch
 from workers.learners.base import Weights
 from workers.learners.task import TaskConfig, task_policy
 from workers.learners.vae import build_controller
-from workers.losses.task import goal_observation, goal_observation_dim, task_terms
+from workers.losses.task import task_terms
 from workers.models import body_state
 from workers.models.actor_critic import HelperLayout
 from workers.models.nets import gaussian
+from workers.models.task import goal_observation, goal_observation_dim
 from workers.policies import Policy
 from workers.recorders import Recorder, record_buffer, to_host
 from workers.sim.env import Simulator, StepResult
